@@ -1,0 +1,25 @@
+"""torchrl-reset: reset agents that learn from examples of initial states, as TorchRL components.
+
+Implements Kim et al., "Automating Reinforcement Learning with Example-based Resets" (RA-L 2022).
+"""
+from .collector import DualCollector, find_trigger_transforms
+from .ensemble import EnsembleValueOperator, reduce_members, success_classifier, success_probability
+from .example_buffer import InitialStateBuffer
+from .nstep import NStepStateTransform
+from .rce_loss import RCELoss
+from .trigger import ResetTriggerTransform
+
+__version__ = "0.1.0"
+
+__all__ = [
+    "DualCollector",
+    "EnsembleValueOperator",
+    "InitialStateBuffer",
+    "NStepStateTransform",
+    "RCELoss",
+    "ResetTriggerTransform",
+    "find_trigger_transforms",
+    "reduce_members",
+    "success_classifier",
+    "success_probability",
+]

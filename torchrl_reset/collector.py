@@ -1,0 +1,460 @@
+"""Forward and reset episodes interleaved without free resets (paper, Algorithm 1; method.md section 2)."""
+from __future__ import annotations
+
+import warnings
+from collections import OrderedDict
+from collections.abc import Callable, Iterator, Sequence
+from typing import Any
+
+import torch
+from tensordict import TensorDict, TensorDictBase
+from tensordict.nn import TensorDictModuleBase
+from tensordict.utils import NestedKey
+from torchrl.collectors import BaseCollector
+from torchrl.envs import EnvBase, TransformedEnv
+from torchrl.envs.transforms import Compose
+from torchrl.envs.utils import ExplorationType, set_exploration_type, step_mdp
+
+from .example_buffer import InitialStateBuffer
+from .trigger import ResetTriggerTransform
+
+__all__ = ["DualCollector", "find_trigger_transforms"]
+
+FORWARD = 0
+RESET = 1
+PHASE_NAMES = {FORWARD: "forward", RESET: "reset"}
+COUNTERS = (
+    "forward_steps",
+    "reset_steps",
+    "forward_episodes",
+    "reset_episodes",
+    "triggered_resets",
+    "requested_resets",
+    "successful_resets",
+    "manual_resets",
+    "terminations",
+)
+
+
+def find_trigger_transforms(env: EnvBase) -> list[ResetTriggerTransform]:
+    """Every :class:`ResetTriggerTransform` inside ``env`` (nested transformed envs and Compose included)."""
+    found: list[ResetTriggerTransform] = []
+
+    def visit_transform(transform) -> None:
+        if isinstance(transform, ResetTriggerTransform):
+            found.append(transform)
+        elif isinstance(transform, Compose):
+            for t in transform.transforms:
+                visit_transform(t)
+
+    while isinstance(env, TransformedEnv):
+        visit_transform(env.transform)
+        env = env.base_env
+    return found
+
+
+def _state_owner(env: EnvBase):
+    """The innermost env (or wrapper) offering ``get_state`` / ``set_state``, if any."""
+    candidates = []
+    current = env
+    while True:
+        candidates.append(current)
+        if isinstance(current, TransformedEnv):
+            current = current.base_env
+        else:
+            break
+    for candidate in candidates:
+        if callable(getattr(candidate, "get_state", None)) and callable(getattr(candidate, "set_state", None)):
+            return candidate
+    return None
+
+
+class DualCollector(BaseCollector):
+    """Runs a forward and a reset agent in turn on one environment that is never reset for free.
+
+    The loop of the paper's Algorithm 1 over tensordicts:
+
+    1. the first ``env.reset()`` gives the first state; it is added to the example buffer;
+    2. forward episode: the forward policy acts until a :class:`ResetTriggerTransform` in the env
+       fires (a *triggered* reset: the action is not executed and the step is not yielded) or
+       ``max_forward_steps`` (H_f) steps were taken (a *requested* reset);
+    3. reset episode, from that very state: the reset policy acts until the env's
+       ``reset_success_key`` holds after at least ``min_reset_steps`` steps (a *successful*
+       reset) or ``max_reset_steps`` (H_r) steps were taken, after which the collector calls
+       ``env.reset()`` (a *manual* reset, the only other ``env.reset()`` call);
+    4. the state that starts the next forward episode is added to the example buffer.
+
+    Every yielded batch holds consecutive executed steps of **one** phase, tagged with
+    ``("collector", "phase")`` (0 forward, 1 reset; see :meth:`phase_of`) and
+    ``("collector", "traj_ids")`` (one id per episode), so each agent's replay buffer receives only
+    its own transitions. The last step of an episode that ends by request, success or manual reset
+    carries ``("next", "truncated")`` and ``("next", "done")``. The trigger is enabled during forward
+    episodes only, and ``init_key`` is set on the first step of every episode so that torchrl's
+    exploration modules (Ornstein-Uhlenbeck) restart their noise.
+
+    If the env *terminates* (``("next", "terminated")``; the paper's tasks never do), the episode
+    ends and the collector calls ``env.reset()``, counted under ``terminations``.
+
+    Args:
+        create_env_fn (EnvBase or callable): an unbatched env, or a function returning one.
+        forward_policy (TensorDictModuleBase or callable): the forward policy with its exploration.
+        reset_policy (TensorDictModuleBase or callable): the reset policy with its exploration.
+
+    Keyword Args:
+        max_forward_steps (int): H_f.
+        max_reset_steps (int, optional): H_r; defaults to ``2 * max_forward_steps``.
+        min_reset_steps (int): reset steps before ``reset_success`` may end a reset episode. Defaults to 5.
+        frames_per_batch (int): at most this many steps per batch (a batch also ends with its
+            phase). Defaults to 1: one update per environment step, as in the paper.
+        total_frames (int): executed steps (forward and reset) after which iteration stops; -1 (default) never.
+        example_buffer (InitialStateBuffer, optional): where initial states go; one is created if omitted.
+        example_keys (sequence of NestedKey): the state entries stored as examples. Defaults to
+            ``("observation",)`` (or the given buffer's ``state_keys``).
+        reset_success_key (NestedKey): the env's at-initial-state flag in the next tensordict.
+            Defaults to ``"reset_success"``.
+        trigger_key (NestedKey): the trigger flag in the next tensordict. Defaults to the trigger
+            transform's ``trigger_key``, else ``"reset_trigger"``.
+        init_key (NestedKey): the flag written on the first step of each episode. Defaults to ``"is_init"``.
+        exploration_type (ExplorationType): mode the policies run in. Defaults to ``RANDOM``.
+        max_events (int): episode records kept until :meth:`pop_events` drains them. Defaults to 100_000.
+
+    Examples:
+        >>> import torch
+        >>> from tensordict.nn import TensorDictModule
+        >>> from torchrl_reset import DualCollector
+        >>> from torchrl_reset_envs import ChainEnv
+        >>> right = TensorDictModule(lambda obs: torch.ones(1), in_keys=["observation"], out_keys=["action"])
+        >>> left = TensorDictModule(lambda obs: -torch.ones(1), in_keys=["observation"], out_keys=["action"])
+        >>> collector = DualCollector(ChainEnv(num_states=10), right, left, max_forward_steps=4,
+        ...                           min_reset_steps=1, total_frames=16)
+        >>> [DualCollector.phase_of(batch) for batch in collector][:5]
+        ['forward', 'forward', 'forward', 'forward', 'reset']
+        >>> collector.counters["successful_resets"], collector.forward_share, collector.reset_success_rate
+        (2, 0.5, 1.0)
+    """
+
+    FORWARD = FORWARD
+    RESET = RESET
+
+    def __init__(
+        self,
+        create_env_fn: EnvBase | Callable[[], EnvBase],
+        forward_policy: TensorDictModuleBase | Callable[[TensorDictBase], TensorDictBase],
+        reset_policy: TensorDictModuleBase | Callable[[TensorDictBase], TensorDictBase],
+        *,
+        max_forward_steps: int,
+        max_reset_steps: int | None = None,
+        min_reset_steps: int = 5,
+        frames_per_batch: int = 1,
+        total_frames: int = -1,
+        example_buffer: InitialStateBuffer | None = None,
+        example_keys: Sequence[NestedKey] | None = None,
+        reset_success_key: NestedKey = "reset_success",
+        trigger_key: NestedKey | None = None,
+        init_key: NestedKey = "is_init",
+        exploration_type: ExplorationType = ExplorationType.RANDOM,
+        max_events: int = 100_000,
+    ) -> None:
+        super().__init__()
+
+        def positive_int(name: str, value: Any, minimum: int = 1) -> int:
+            if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
+                raise ValueError(f"{name} must be an integer >= {minimum}, got {value!r}.")
+            return value
+
+        self.max_forward_steps = positive_int("max_forward_steps (H_f)", max_forward_steps)
+        if max_reset_steps is None:
+            max_reset_steps = 2 * max_forward_steps
+        self.max_reset_steps = positive_int("max_reset_steps (H_r)", max_reset_steps)
+        self.min_reset_steps = positive_int("min_reset_steps", min_reset_steps, minimum=0)
+        if self.min_reset_steps > self.max_reset_steps:
+            raise ValueError(
+                f"min_reset_steps ({min_reset_steps}) exceeds max_reset_steps (H_r = {max_reset_steps}): "
+                "no reset episode could ever succeed."
+            )
+        self.frames_per_batch = self.requested_frames_per_batch = positive_int("frames_per_batch", frames_per_batch)
+        if isinstance(total_frames, bool) or not isinstance(total_frames, int) or (total_frames < 1 and total_frames != -1):
+            raise ValueError(f"total_frames must be a positive integer or -1, got {total_frames!r}.")
+        self.total_frames = total_frames
+        self.max_events = positive_int("max_events", max_events)
+
+        env = create_env_fn if isinstance(create_env_fn, EnvBase) else create_env_fn()
+        if not isinstance(env, EnvBase):
+            raise TypeError(f"create_env_fn must be an EnvBase or return one, got {type(env).__name__}.")
+        if env.batch_size != torch.Size([]):
+            raise ValueError(
+                f"DualCollector runs one unbatched environment (batch_size []), got batch_size {tuple(env.batch_size)}."
+            )
+        for name, policy in (("forward_policy", forward_policy), ("reset_policy", reset_policy)):
+            if not callable(policy):
+                raise TypeError(f"{name} must be callable on a tensordict, got {type(policy).__name__}.")
+        self.env = env
+        self.forward_policy = forward_policy
+        self.reset_policy = reset_policy
+        self.triggers = find_trigger_transforms(env)
+        if trigger_key is None:
+            keys = {t.trigger_key for t in self.triggers} or {"reset_trigger"}
+            if len(keys) > 1:
+                raise ValueError(f"the env's trigger transforms write different keys {keys}; pass trigger_key.")
+            trigger_key = keys.pop()
+        self.trigger_key = trigger_key
+        self.reset_success_key = reset_success_key
+        self.init_key = init_key
+        self.exploration_type = exploration_type
+        if example_buffer is None:
+            example_buffer = InitialStateBuffer(state_keys=example_keys or ("observation",))
+        elif example_keys is not None and list(example_keys) != example_buffer.state_keys:
+            raise ValueError(
+                f"example_keys {list(example_keys)} differ from the example buffer's state_keys {example_buffer.state_keys}."
+            )
+        self.example_buffer = example_buffer
+        self._state_owner = _state_owner(env)
+        self.counters: dict[str, int] = dict.fromkeys(COUNTERS, 0)
+        self._events: list[dict] = []
+        self._td: TensorDictBase | None = None
+        self._phase = FORWARD
+        self._phase_steps = 0
+        self._traj_id = 0
+        self._frames = 0
+
+    # ----------------------------------------------------------------- metrics
+    @property
+    def frames(self) -> int:
+        """Executed environment steps so far (forward and reset)."""
+        return self._frames
+
+    @property
+    def phase(self) -> str:
+        """The phase of the next step: ``"forward"`` or ``"reset"``."""
+        return PHASE_NAMES[self._phase]
+
+    @property
+    def forward_share(self) -> float:
+        """Forward steps / (forward + reset steps); NaN before any step."""
+        total = self.counters["forward_steps"] + self.counters["reset_steps"]
+        return self.counters["forward_steps"] / total if total else float("nan")
+
+    @property
+    def reset_success_rate(self) -> float:
+        """Successful reset episodes / finished reset episodes; NaN before the first one ends."""
+        finished = self.counters["successful_resets"] + self.counters["manual_resets"]
+        return self.counters["successful_resets"] / finished if finished else float("nan")
+
+    def metrics(self) -> dict[str, float]:
+        """Counters plus forward share and reset success rate, ready for a logger."""
+        return {**self.counters, "forward_share": self.forward_share, "reset_success_rate": self.reset_success_rate}
+
+    @staticmethod
+    def phase_of(batch: TensorDictBase) -> str:
+        """``"forward"`` or ``"reset"``: the phase of a batch yielded by this collector."""
+        phase = batch.get(("collector", "phase"), None)
+        if phase is None:
+            raise KeyError("the batch has no ('collector', 'phase') entry: it was not yielded by a DualCollector.")
+        return PHASE_NAMES[int(phase.reshape(-1)[0])]
+
+    def pop_events(self) -> list[dict]:
+        """Returns and clears the records of the episodes finished since the last call.
+
+        Each record: ``phase``, ``outcome`` (``triggered``, ``requested``, ``success``, ``manual``,
+        ``terminated``), ``steps``, ``frame`` (executed steps when it ended) and ``state`` (for a
+        triggered episode the state just before the trigger, else the episode's last state).
+        """
+        events, self._events = self._events, []
+        return events
+
+    # --------------------------------------------------------------- the loop
+    def _record(self, outcome: str, state: TensorDictBase) -> None:
+        if len(self._events) < self.max_events:
+            self._events.append(
+                {
+                    "phase": PHASE_NAMES[self._phase],
+                    "outcome": outcome,
+                    "steps": self._phase_steps,
+                    "frame": self._frames,
+                    "state": state.select(*self.example_buffer.state_keys).clone(),
+                }
+            )
+
+    def _begin(self, phase: int, td: TensorDictBase) -> None:
+        """Starts an episode of ``phase`` from the state in ``td`` (a root tensordict)."""
+        self._phase = phase
+        self._phase_steps = 0
+        self._traj_id += 1
+        for trigger in self.triggers:
+            trigger.set_enabled(phase == FORWARD)
+        if phase == FORWARD:
+            self.example_buffer.add(td)
+        self._td = td
+
+    def _continue_from(self, td: TensorDictBase) -> TensorDictBase:
+        """The root tensordict of the state reached by ``td``'s step, with no episode end pending."""
+        root = step_mdp(td, exclude_action=True, exclude_reward=True, exclude_done=False, keep_other=True)
+        for key in self.env.done_keys:
+            value = root.get(key, None)
+            if value is not None:
+                root.set(key, torch.zeros_like(value))
+        return root
+
+    def _manual_reset(self) -> TensorDictBase:
+        return self.env.reset()
+
+    def _start(self) -> None:
+        self._begin(FORWARD, self.env.reset())
+
+    def _step(self) -> tuple[TensorDictBase | None, bool]:
+        """Runs one policy action; returns (the executed step or None, whether the episode ended)."""
+        phase = self._phase
+        td = self._td
+        td.set(self.init_key, torch.tensor([self._phase_steps == 0], device=td.device))
+        policy = self.forward_policy if phase == FORWARD else self.reset_policy
+        with torch.no_grad(), set_exploration_type(self.exploration_type):
+            td = policy(td)
+        td = self.env.step(td)
+        next_td = td.get("next")
+
+        if phase == FORWARD and bool(next_td.get(self.trigger_key, torch.zeros(1, dtype=torch.bool)).any()):
+            # Triggered: the action was not executed, no transition to store.
+            self.counters["triggered_resets"] += 1
+            self.counters["forward_episodes"] += 1
+            self._record("triggered", td)
+            self._begin(RESET, self._continue_from(td))
+            return None, True
+
+        self._phase_steps += 1
+        self._frames += 1
+        step = td.exclude(*[k for k in td.keys() if isinstance(k, str) and k.startswith("_")])
+        step.set(("collector", "phase"), torch.tensor(phase, device=td.device))
+        step.set(("collector", "traj_ids"), torch.tensor(self._traj_id, device=td.device))
+        terminated = bool(next_td.get("terminated", torch.zeros(1, dtype=torch.bool)).any())
+
+        if phase == FORWARD:
+            self.counters["forward_steps"] += 1
+            outcome = None
+            if terminated:
+                outcome = "terminated"
+            elif self._phase_steps >= self.max_forward_steps:
+                outcome = "requested"
+            if outcome is None:
+                self._td = self._continue_from(td)
+                return step, False
+            self.counters["forward_episodes"] += 1
+            self._mark_end(step)
+            self._record(outcome, next_td)
+            if terminated:
+                self.counters["terminations"] += 1
+                self._begin(FORWARD, self._manual_reset())
+            else:
+                self.counters["requested_resets"] += 1
+                self._begin(RESET, self._continue_from(td))
+            return step, True
+
+        self.counters["reset_steps"] += 1
+        success = bool(next_td.get(self.reset_success_key).any()) and self._phase_steps >= self.min_reset_steps
+        if not (success or terminated or self._phase_steps >= self.max_reset_steps):
+            self._td = self._continue_from(td)
+            return step, False
+        self.counters["reset_episodes"] += 1
+        self._mark_end(step)
+        if success:
+            self.counters["successful_resets"] += 1
+            self._record("success", next_td)
+            self._begin(FORWARD, self._continue_from(td))
+        else:
+            outcome = "terminated" if terminated else "manual"
+            self.counters["terminations" if terminated else "manual_resets"] += 1
+            self._record(outcome, next_td)
+            self._begin(FORWARD, self._manual_reset())
+        return step, True
+
+    @staticmethod
+    def _mark_end(step: TensorDictBase) -> None:
+        for key in ("truncated", "done"):
+            value = step.get(("next", key), None)
+            flag = torch.ones(1, dtype=torch.bool, device=step.device)
+            step.set(("next", key), flag if value is None else value | flag.reshape(value.shape))
+
+    def iterator(self) -> Iterator[TensorDictBase]:
+        if self.reset_success_key is None:
+            raise ValueError("reset_success_key is required.")
+        if self._td is None:
+            self._start()
+        pending: list[TensorDictBase] = []
+        while self.total_frames < 0 or self._frames < self.total_frames:
+            step, ended = self._step()
+            if step is not None:
+                pending.append(step)
+            done = self.total_frames >= 0 and self._frames >= self.total_frames
+            if pending and (ended or done or len(pending) >= self.frames_per_batch):
+                yield torch.stack(pending, 0)
+                pending = []
+
+    # --------------------------------------------------------- state / seeding
+    def set_seed(self, seed: int, static_seed: bool = False) -> int:
+        """Seeds torch's global generator (policy noise, sampling) and the env."""
+        torch.manual_seed(seed)
+        return self.env.set_seed(seed, static_seed=static_seed)
+
+    def state_dict(self) -> OrderedDict:
+        """Everything needed to continue identically: counters, the current episode and state,
+        the env's simulator state (when the env offers ``get_state``), the example buffer, the
+        trigger smoothing and torch's global RNG state."""
+        if self._state_owner is None:
+            warnings.warn(
+                f"{type(self.env).__name__} has no get_state/set_state: a resumed DualCollector will "
+                "start from env.reset() instead of the saved state.",
+                stacklevel=2,
+            )
+        return OrderedDict(
+            counters=dict(self.counters),
+            phase=self._phase,
+            phase_steps=self._phase_steps,
+            traj_id=self._traj_id,
+            frames=self._frames,
+            td=None if self._td is None else self._td.to_dict(),
+            env_state=None if self._state_owner is None or self._td is None else self._state_owner.get_state(),
+            example_buffer=self.example_buffer.state_dict(),
+            trigger_smoothing=[t._smoothed for t in self.triggers],
+            events=list(self._events),
+            rng_state=torch.get_rng_state(),
+        )
+
+    def load_state_dict(self, state_dict: OrderedDict) -> None:
+        missing = {"counters", "phase", "phase_steps", "traj_id", "frames", "td", "example_buffer"} - set(state_dict)
+        if missing:
+            raise KeyError(f"not a DualCollector state_dict: missing {sorted(missing)}.")
+        self.counters = dict.fromkeys(COUNTERS, 0) | dict(state_dict["counters"])
+        self._frames = int(state_dict["frames"])
+        self.example_buffer.load_state_dict(state_dict["example_buffer"])
+        self._events = list(state_dict.get("events", []))
+        if state_dict.get("rng_state") is not None:
+            torch.set_rng_state(state_dict["rng_state"])
+        td = state_dict["td"]
+        if td is None:
+            self._td = None
+            return
+        if state_dict.get("env_state") is not None and self._state_owner is not None:
+            self._state_owner.set_state(state_dict["env_state"])
+            self._phase = int(state_dict["phase"])
+            self._phase_steps = int(state_dict["phase_steps"])
+            self._traj_id = int(state_dict["traj_id"])
+            self._td = TensorDict.from_dict(td, batch_size=[])
+            for trigger, smoothed in zip(self.triggers, state_dict.get("trigger_smoothing", [])):
+                trigger.set_enabled(self._phase == FORWARD)
+                trigger._smoothed = smoothed
+        else:
+            warnings.warn("no saved env state to restore: continuing from env.reset().", stacklevel=2)
+            self._traj_id = int(state_dict["traj_id"])
+            self._begin(FORWARD, self.env.reset())
+
+    def shutdown(self, timeout: float | None = None, close_env: bool = True, raise_on_error: bool = True) -> None:
+        if close_env and not self.env.is_closed:
+            self.env.close(raise_if_closed=False)
+
+    def update_policy_weights_(self, *args, **kwargs) -> None:
+        """The policies are used in place: trained parameters are seen at the next step."""
+
+    def __repr__(self) -> str:
+        return (
+            f"{type(self).__name__}(env={type(self.env).__name__}, H_f={self.max_forward_steps}, "
+            f"H_r={self.max_reset_steps}, frames={self._frames}, counters={self.counters})"
+        )

@@ -1,0 +1,283 @@
+"""The reset agent's critic: an ensemble of success classifiers with randomized prior functions.
+
+Paper: Kim et al., "Automating Reinforcement Learning with Example-based Resets" (RA-L 2022),
+"Reset trigger mechanism" and "Hyperparameters"; randomized priors from Osband et al. (2018).
+"""
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import torch
+from tensordict import TensorDictBase
+from tensordict.nn import TensorDictModuleBase
+from tensordict.utils import NestedKey
+from torch import nn
+
+__all__ = [
+    "EnsembleValueOperator",
+    "reduce_members",
+    "success_classifier",
+    "success_probability",
+]
+
+MEMBER_REDUCTIONS = ("mean", "min", "max")
+
+
+def success_classifier(logits: torch.Tensor) -> torch.Tensor:
+    """The classifier value ``C = sigmoid(logit)``, in [0, 1]."""
+    return torch.sigmoid(logits)
+
+
+def success_probability(logits: torch.Tensor) -> torch.Tensor:
+    """The classifier ratio ``p = C / (1 - C)`` with ``C`` clipped to [0, 0.5] first.
+
+    ``sigmoid(l) / (1 - sigmoid(l)) = exp(l)`` and ``C <= 0.5`` is ``l <= 0``, so the clipped ratio is
+    ``exp(min(l, 0))``: the same number, computed without cancellation. The result lies in [0, 1].
+    """
+    return torch.exp(logits.clamp(max=0.0))
+
+
+def reduce_members(values: torch.Tensor, reduction: str = "mean") -> torch.Tensor:
+    """Reduces the trailing ensemble-member dimension with ``"mean"``, ``"min"`` or ``"max"``."""
+    if reduction == "mean":
+        return values.mean(-1)
+    if reduction == "min":
+        return values.amin(-1)
+    if reduction == "max":
+        return values.amax(-1)
+    raise ValueError(f"reduction must be one of {MEMBER_REDUCTIONS}, got {reduction!r}.")
+
+
+def _xavier_uniform_(weight: torch.Tensor, fan_in: int, fan_out: int) -> None:
+    bound = math.sqrt(6.0 / (fan_in + fan_out))
+    with torch.no_grad():
+        weight.uniform_(-bound, bound)
+
+
+class EnsembleValueOperator(TensorDictModuleBase):
+    """K state-action classifiers evaluated together, each with its own randomized prior function.
+
+    Every member has the paper's critic architecture: the observation enters the first layer, the
+    action is joined to the first hidden layer's output, ReLU hidden layers (400, 300 by default)
+    and one output logit. Member ``i`` returns ``logit_i(s, a) = f_i(s, a) + beta * g_i(s, a)``,
+    where ``g_i`` has the same architecture, its own random initialisation (biases included) and
+    is never trained: its weights are buffers, so they are in no optimizer, and a target copy made
+    by :class:`~torchrl.objectives.SoftUpdate` keeps them unchanged. All members are evaluated by
+    batched matrix products (no Python loop over members).
+
+    Trainable weights use Xavier-uniform initialisation and zero biases (method.md section 5).
+
+    Args:
+        observation_dim (int): size of the observation (the sum of the sizes of all observation
+            keys when several are given).
+        action_dim (int): size of the action.
+
+    Keyword Args:
+        num_members (int): the ensemble size K. Defaults to 5.
+        hidden_sizes (sequence of int): hidden layer sizes. Defaults to ``(400, 300)``.
+        prior_scale (float): the prior scale beta. ``0`` disables the priors. Defaults to 3.
+        in_keys (sequence of NestedKey): observation key(s) followed by the action key, last.
+            Defaults to ``("observation", "action")``.
+        out_keys (sequence of NestedKey): one key for the per-member logits, shaped
+            ``[*batch, K]``. Defaults to ``("state_action_logit",)``.
+        device, dtype: where and how the parameters are created.
+
+    Examples:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> from torchrl_reset import EnsembleValueOperator, success_probability
+        >>> torch.manual_seed(0)  # doctest: +ELLIPSIS
+        <...>
+        >>> ensemble = EnsembleValueOperator(3, 2, num_members=4, hidden_sizes=(16, 16))
+        >>> td = TensorDict(observation=torch.randn(10, 3), action=torch.rand(10, 2), batch_size=[10])
+        >>> td = ensemble(td)
+        >>> td["state_action_logit"].shape
+        torch.Size([10, 4])
+        >>> p = success_probability(td["state_action_logit"])  # in [0, 1]
+        >>> bool(((p >= 0) & (p <= 1)).all())
+        True
+        >>> sum(p.numel() for p in ensemble.parameters())  # priors are buffers, not parameters
+        1540
+    """
+
+    def __init__(
+        self,
+        observation_dim: int,
+        action_dim: int,
+        *,
+        num_members: int = 5,
+        hidden_sizes: Sequence[int] = (400, 300),
+        prior_scale: float = 3.0,
+        in_keys: Sequence[NestedKey] = ("observation", "action"),
+        out_keys: Sequence[NestedKey] = ("state_action_logit",),
+        device: torch.device | str | None = None,
+        dtype: torch.dtype | None = None,
+    ) -> None:
+        super().__init__()
+        for name, value in (("observation_dim", observation_dim), ("action_dim", action_dim)):
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise ValueError(f"{name} must be a positive integer, got {value!r}.")
+        if isinstance(num_members, bool) or not isinstance(num_members, int) or num_members < 1:
+            raise ValueError(f"num_members (the ensemble size K) must be an integer >= 1, got {num_members!r}.")
+        hidden_sizes = tuple(hidden_sizes)
+        if not hidden_sizes or any(
+            isinstance(h, bool) or not isinstance(h, int) or h < 1 for h in hidden_sizes
+        ):
+            raise ValueError(f"hidden_sizes must be a non-empty sequence of positive integers, got {hidden_sizes!r}.")
+        prior_scale = float(prior_scale)
+        if not math.isfinite(prior_scale) or prior_scale < 0:
+            raise ValueError(f"prior_scale must be a finite number >= 0, got {prior_scale!r}.")
+        in_keys = list(in_keys)
+        out_keys = list(out_keys)
+        if len(in_keys) < 2:
+            raise ValueError(f"in_keys must name at least one observation key and the action key (last), got {in_keys!r}.")
+        if len(out_keys) != 1:
+            raise ValueError(f"out_keys must hold exactly one key (the per-member logits), got {out_keys!r}.")
+        self.in_keys = in_keys
+        self.out_keys = out_keys
+        self.observation_dim = observation_dim
+        self.action_dim = action_dim
+        self.num_members = num_members
+        self.hidden_sizes = hidden_sizes
+        self.prior_scale = prior_scale
+
+        factory = {"device": device, "dtype": dtype}
+        sizes_in = (observation_dim, *hidden_sizes)
+        sizes_out = (*hidden_sizes, 1)
+        self.num_layers = len(sizes_in)
+        k = num_members
+        for i, (n_in, n_out) in enumerate(zip(sizes_in, sizes_out)):
+            self.register_parameter(f"weight_{i}", nn.Parameter(torch.empty(k, n_in, n_out, **factory)))
+            self.register_parameter(f"bias_{i}", nn.Parameter(torch.empty(k, n_out, **factory)))
+        self.action_weight = nn.Parameter(torch.empty(k, action_dim, sizes_out[1], **factory))
+        if prior_scale > 0:
+            for i, (n_in, n_out) in enumerate(zip(sizes_in, sizes_out)):
+                self.register_buffer(f"prior_weight_{i}", torch.empty(k, n_in, n_out, **factory))
+                self.register_buffer(f"prior_bias_{i}", torch.empty(k, n_out, **factory))
+            self.register_buffer("prior_action_weight", torch.empty(k, action_dim, sizes_out[1], **factory))
+        self.reset_parameters()
+
+    @property
+    def has_prior(self) -> bool:
+        return self.prior_scale > 0
+
+    def reset_parameters(self) -> None:
+        """Xavier-uniform weights and zero biases for the trained part; a fresh random prior."""
+        sizes_in = (self.observation_dim, *self.hidden_sizes)
+        sizes_out = (*self.hidden_sizes, 1)
+        prefixes = ["", "prior_"] if self.has_prior else [""]
+        for prefix in prefixes:
+            for i, (n_in, n_out) in enumerate(zip(sizes_in, sizes_out)):
+                # The action joins the input of layer 1: fan-in counts both parts.
+                fan_in = n_in + (self.action_dim if i == 1 else 0)
+                _xavier_uniform_(getattr(self, f"{prefix}weight_{i}"), fan_in, n_out)
+                if i == 1:
+                    _xavier_uniform_(getattr(self, f"{prefix}action_weight"), fan_in, n_out)
+                bias = getattr(self, f"{prefix}bias_{i}")
+                with torch.no_grad():
+                    if prefix:
+                        bound = 1.0 / math.sqrt(fan_in)
+                        bias.uniform_(-bound, bound)
+                    else:
+                        bias.zero_()
+
+    def _layers(self, prefix: str) -> tuple[list[torch.Tensor], list[torch.Tensor], torch.Tensor]:
+        weights = [getattr(self, f"{prefix}weight_{i}") for i in range(self.num_layers)]
+        biases = [getattr(self, f"{prefix}bias_{i}") for i in range(self.num_layers)]
+        return weights, biases, getattr(self, f"{prefix}action_weight")
+
+    @staticmethod
+    def _members_forward(
+        obs: torch.Tensor,
+        action: torch.Tensor,
+        weights: list[torch.Tensor],
+        biases: list[torch.Tensor],
+        action_weight: torch.Tensor,
+    ) -> torch.Tensor:
+        """Runs M stacked members on the same [N, *] inputs; returns [M, N] logits."""
+        hidden = obs
+        last = len(weights) - 1
+        for i, (weight, bias) in enumerate(zip(weights, biases)):
+            hidden = torch.matmul(hidden, weight) + bias.unsqueeze(-2)
+            if i == 1:
+                hidden = hidden + torch.matmul(action, action_weight)
+            if i < last:
+                hidden = torch.relu(hidden)
+        return hidden.squeeze(-1)
+
+    def logits(self, observation: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        """Per-member logits for a batch of (observation, action) pairs.
+
+        Args:
+            observation (Tensor): ``[*batch, observation_dim]``.
+            action (Tensor): ``[*batch, action_dim]``.
+
+        Returns:
+            ``[*batch, K]`` logits ``f_i + beta * g_i``.
+        """
+        if observation.shape[-1:] != (self.observation_dim,):
+            raise ValueError(
+                f"EnsembleValueOperator expects observations of size {self.observation_dim} in the last "
+                f"dimension, got shape {tuple(observation.shape)}."
+            )
+        if action.shape[-1:] != (self.action_dim,):
+            raise ValueError(
+                f"EnsembleValueOperator expects actions of size {self.action_dim} in the last dimension, "
+                f"got shape {tuple(action.shape)}."
+            )
+        batch = observation.shape[:-1]
+        if action.shape[:-1] != batch:
+            raise ValueError(
+                f"observation and action batch shapes differ: {tuple(batch)} vs {tuple(action.shape[:-1])}."
+            )
+        obs = observation.reshape(-1, self.observation_dim)
+        act = action.reshape(-1, self.action_dim).to(obs.dtype)
+        k = self.num_members
+        weights, biases, action_weight = self._layers("")
+        if not self.has_prior:
+            out = self._members_forward(obs, act, weights, biases, action_weight)
+        elif torch.is_grad_enabled():
+            # Separate prior pass: autograd then computes no weight gradients for the frozen half.
+            out = self._members_forward(obs, act, weights, biases, action_weight)
+            p_weights, p_biases, p_action_weight = self._layers("prior_")
+            prior = self._members_forward(obs, act, p_weights, p_biases, p_action_weight)
+            out = out + self.prior_scale * prior
+        else:
+            # Without gradients, trained and prior members run as one stack of 2K.
+            p_weights, p_biases, p_action_weight = self._layers("prior_")
+            stacked = self._members_forward(
+                obs,
+                act,
+                [torch.cat(pair) for pair in zip(weights, p_weights)],
+                [torch.cat(pair) for pair in zip(biases, p_biases)],
+                torch.cat([action_weight, p_action_weight]),
+            )
+            out = stacked[:k] + self.prior_scale * stacked[k:]
+        return out.transpose(0, 1).reshape(*batch, k)
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        observations = []
+        for key in self.in_keys[:-1]:
+            value = tensordict.get(key, None)
+            if value is None:
+                raise KeyError(
+                    f"EnsembleValueOperator needs the observation key {key!r}; the tensordict has "
+                    f"{sorted(map(str, tensordict.keys(True, True)))}."
+                )
+            observations.append(value)
+        action = tensordict.get(self.in_keys[-1], None)
+        if action is None:
+            raise KeyError(
+                f"EnsembleValueOperator needs the action key {self.in_keys[-1]!r}; the tensordict has "
+                f"{sorted(map(str, tensordict.keys(True, True)))}."
+            )
+        observation = observations[0] if len(observations) == 1 else torch.cat(observations, -1)
+        tensordict.set(self.out_keys[0], self.logits(observation, action))
+        return tensordict
+
+    def extra_repr(self) -> str:
+        return (
+            f"observation_dim={self.observation_dim}, action_dim={self.action_dim}, "
+            f"num_members={self.num_members}, hidden_sizes={self.hidden_sizes}, prior_scale={self.prior_scale}"
+        )
