@@ -30,7 +30,7 @@ class ChainEnv(EnvBase):
 
     A reset policy that always steps left reaches the initial state from cell ``k`` in exactly
     ``k`` steps and stays there, so its success probability is ``gamma ** k`` (method.md section 1).
-    The env never terminates by itself. It is deterministic; ``get_state`` / ``set_state``
+    The env never terminates by itself. It is deterministic; ``get_simulator_state`` / ``set_simulator_state``
     save and restore it.
 
     Args:
@@ -117,8 +117,8 @@ class ChainEnv(EnvBase):
     def position(self) -> int:
         return self._position
 
-    def get_state(self) -> dict:
+    def get_simulator_state(self) -> dict:
         return {"position": self._position}
 
-    def set_state(self, state: dict) -> None:
+    def set_simulator_state(self, state: dict) -> None:
         self._position = int(state["position"])

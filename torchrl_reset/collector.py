@@ -54,7 +54,7 @@ def find_trigger_transforms(env: EnvBase) -> list[ResetTriggerTransform]:
 
 
 def _state_owner(env: EnvBase):
-    """The innermost env (or wrapper) offering ``get_state`` / ``set_state``, if any."""
+    """The innermost env (or wrapper) offering ``get_simulator_state`` / ``set_simulator_state``, if any."""
     candidates = []
     current = env
     while True:
@@ -64,7 +64,7 @@ def _state_owner(env: EnvBase):
         else:
             break
     for candidate in candidates:
-        if callable(getattr(candidate, "get_state", None)) and callable(getattr(candidate, "set_state", None)):
+        if callable(getattr(candidate, "get_simulator_state", None)) and callable(getattr(candidate, "set_simulator_state", None)):
             return candidate
     return None
 
@@ -286,20 +286,25 @@ class DualCollector(BaseCollector):
             self.example_buffer.add(td)
         self._td = td
 
-    def _continue_from(self, td: TensorDictBase) -> TensorDictBase:
-        """The root tensordict of the state reached by ``td``'s step, with no episode end pending."""
-        root = step_mdp(td, exclude_action=True, exclude_reward=True, exclude_done=False, keep_other=True)
-        for key in self.env.done_keys:
+    def _clear_flags(self, root: TensorDictBase) -> TensorDictBase:
+        """Sets every done flag (and ``truncated``) of a root tensordict to False: no episode end pending."""
+        done = root.get("done", None)
+        template = torch.zeros(1, dtype=torch.bool, device=root.device) if done is None else torch.zeros_like(done)
+        for key in {*self.env.done_keys, "truncated"}:
             value = root.get(key, None)
-            if value is not None:
-                root.set(key, torch.zeros_like(value))
+            root.set(key, template if value is None else torch.zeros_like(value))
         return root
 
+    def _continue_from(self, td: TensorDictBase) -> TensorDictBase:
+        """The root tensordict of the state reached by ``td``'s step."""
+        root = step_mdp(td, exclude_action=True, exclude_reward=True, exclude_done=False, keep_other=True)
+        return self._clear_flags(root)
+
     def _manual_reset(self) -> TensorDictBase:
-        return self.env.reset()
+        return self._clear_flags(self.env.reset())
 
     def _start(self) -> None:
-        self._begin(FORWARD, self.env.reset())
+        self._begin(FORWARD, self._manual_reset())
 
     def _step(self) -> tuple[TensorDictBase | None, bool]:
         """Runs one policy action; returns (the executed step or None, whether the episode ended)."""
@@ -325,6 +330,9 @@ class DualCollector(BaseCollector):
         step = td.exclude(*[k for k in td.keys() if isinstance(k, str) and k.startswith("_")])
         step.set(("collector", "phase"), torch.tensor(phase, device=td.device))
         step.set(("collector", "traj_ids"), torch.tensor(self._traj_id, device=td.device))
+        if step.get(("next", "truncated"), None) is None:
+            # every yielded step carries the flag that marks an episode's last step
+            step.set(("next", "truncated"), torch.zeros_like(next_td.get("done")))
         terminated = bool(next_td.get("terminated", torch.zeros(1, dtype=torch.bool)).any())
 
         if phase == FORWARD:
@@ -349,7 +357,13 @@ class DualCollector(BaseCollector):
             return step, True
 
         self.counters["reset_steps"] += 1
-        success = bool(next_td.get(self.reset_success_key).any()) and self._phase_steps >= self.min_reset_steps
+        at_initial_state = next_td.get(self.reset_success_key, None)
+        if at_initial_state is None:
+            raise KeyError(
+                f"the env's step output has no {self.reset_success_key!r} entry (the at-initial-state check); "
+                f"got {sorted(map(str, next_td.keys(True, True)))}. Pass reset_success_key=... to DualCollector."
+            )
+        success = bool(at_initial_state.any()) and self._phase_steps >= self.min_reset_steps
         if not (success or terminated or self._phase_steps >= self.max_reset_steps):
             self._td = self._continue_from(td)
             return step, False
@@ -396,11 +410,11 @@ class DualCollector(BaseCollector):
 
     def state_dict(self) -> OrderedDict:
         """Everything needed to continue identically: counters, the current episode and state,
-        the env's simulator state (when the env offers ``get_state``), the example buffer, the
+        the env's simulator state (when the env offers ``get_simulator_state``), the example buffer, the
         trigger smoothing and torch's global RNG state."""
         if self._state_owner is None:
             warnings.warn(
-                f"{type(self.env).__name__} has no get_state/set_state: a resumed DualCollector will "
+                f"{type(self.env).__name__} has no get_simulator_state/set_simulator_state: a resumed DualCollector will "
                 "start from env.reset() instead of the saved state.",
                 stacklevel=2,
             )
@@ -411,10 +425,10 @@ class DualCollector(BaseCollector):
             traj_id=self._traj_id,
             frames=self._frames,
             td=None if self._td is None else self._td.to_dict(),
-            env_state=None if self._state_owner is None or self._td is None else self._state_owner.get_state(),
+            env_state=None if self._state_owner is None or self._td is None else self._state_owner.get_simulator_state(),
             example_buffer=self.example_buffer.state_dict(),
             trigger_smoothing=[t._smoothed for t in self.triggers],
-            events=list(self._events),
+            events=[{**event, "state": event["state"].to_dict()} for event in self._events],
             rng_state=torch.get_rng_state(),
         )
 
@@ -425,7 +439,9 @@ class DualCollector(BaseCollector):
         self.counters = dict.fromkeys(COUNTERS, 0) | dict(state_dict["counters"])
         self._frames = int(state_dict["frames"])
         self.example_buffer.load_state_dict(state_dict["example_buffer"])
-        self._events = list(state_dict.get("events", []))
+        self._events = [
+            {**event, "state": TensorDict.from_dict(event["state"], batch_size=[])} for event in state_dict.get("events", [])
+        ]
         if state_dict.get("rng_state") is not None:
             torch.set_rng_state(state_dict["rng_state"])
         td = state_dict["td"]
@@ -433,7 +449,7 @@ class DualCollector(BaseCollector):
             self._td = None
             return
         if state_dict.get("env_state") is not None and self._state_owner is not None:
-            self._state_owner.set_state(state_dict["env_state"])
+            self._state_owner.set_simulator_state(state_dict["env_state"])
             self._phase = int(state_dict["phase"])
             self._phase_steps = int(state_dict["phase_steps"])
             self._traj_id = int(state_dict["traj_id"])
@@ -444,7 +460,7 @@ class DualCollector(BaseCollector):
         else:
             warnings.warn("no saved env state to restore: continuing from env.reset().", stacklevel=2)
             self._traj_id = int(state_dict["traj_id"])
-            self._begin(FORWARD, self.env.reset())
+            self._begin(FORWARD, self._manual_reset())
 
     def shutdown(self, timeout: float | None = None, close_env: bool = True, raise_on_error: bool = True) -> None:
         if close_env and not self.env.is_closed:

@@ -1,0 +1,41 @@
+"""Small hand-set networks whose outputs are known in closed form."""
+from __future__ import annotations
+
+import torch
+from tensordict.nn import TensorDictModule
+from torch import nn
+
+from torchrl_reset import EnsembleValueOperator
+
+
+def linear_logit_ensemble(slopes, biases=None, action_dim: int = 1) -> EnsembleValueOperator:
+    """An ensemble with 1-d observations whose member i returns ``-slopes[i] * x + biases[i]`` for x >= 0.
+
+    Hidden sizes (1, 1): h0 = relu(x), h1 = relu(h0), logit = -slope * h1 + bias; the action is ignored.
+    No prior, so the logits are exactly these numbers.
+    """
+    k = len(slopes)
+    biases = [0.0] * k if biases is None else biases
+    ens = EnsembleValueOperator(1, action_dim, num_members=k, hidden_sizes=(1, 1), prior_scale=0.0)
+    with torch.no_grad():
+        ens.weight_0.fill_(1.0)
+        ens.bias_0.zero_()
+        ens.weight_1.fill_(1.0)
+        ens.bias_1.zero_()
+        ens.action_weight.zero_()
+        ens.weight_2.copy_(-torch.tensor(slopes, dtype=torch.float32).view(k, 1, 1))
+        ens.bias_2.copy_(torch.tensor(biases, dtype=torch.float32).view(k, 1))
+    return ens
+
+
+class ConstantActor(nn.Module):
+    def __init__(self, value: float, action_dim: int = 1):
+        super().__init__()
+        self.bias = nn.Parameter(torch.full((action_dim,), float(value)))
+
+    def forward(self, observation):
+        return self.bias.expand(*observation.shape[:-1], self.bias.shape[0]) + 0 * observation[..., :1]
+
+
+def constant_actor(value: float, action_dim: int = 1) -> TensorDictModule:
+    return TensorDictModule(ConstantActor(value, action_dim), in_keys=["observation"], out_keys=["action"])
