@@ -209,11 +209,14 @@ class RCELoss(LossModule):
         """The shared label ``y`` and weight ``1 + gamma * w_y`` for each transition, without gradient."""
         replay = tensordict.reshape(-1) if tensordict.batch_dims != 1 else tensordict
         with torch.no_grad():
-            next_state = self._require(replay, self.tensor_keys.next_state, "s_{t+1}")
-            states = [next_state]
-            if self.n_steps > 1:
-                states.append(self._require(replay, self.tensor_keys.nstep_state, "s_{t+n}"))
-            return self._labels_from(torch.cat(states, 0), replay.shape[0])
+            return self._labels_from(self._target_states(replay), replay.shape[0])
+
+    def _target_states(self, replay: TensorDictBase) -> TensorDictBase:
+        """``s_{t+1}`` (and ``s_{t+n}`` when n > 1) stacked, for one actor and one target pass."""
+        states = [self._require(replay, self.tensor_keys.next_state, "s_{t+1}")]
+        if self.n_steps > 1:
+            states.append(self._require(replay, self.tensor_keys.nstep_state, "s_{t+n}"))
+        return torch.cat(states, 0)
 
     def _labels_from(self, target_states: TensorDictBase, batch: int) -> tuple[torch.Tensor, torch.Tensor]:
         gamma = self.gamma
@@ -245,11 +248,8 @@ class RCELoss(LossModule):
         gamma = self.gamma
 
         with torch.no_grad():
-            # One actor pass and one target-classifier pass for s_{t+1}, s_{t+n} and s*.
-            targets = [self._require(replay, keys.next_state, "s_{t+1}")]
-            if self.n_steps > 1:
-                targets.append(self._require(replay, keys.nstep_state, "s_{t+n}"))
-            label, weight = self._labels_from(torch.cat(targets, 0), batch)
+            # One actor pass and one target-classifier pass for s_{t+1} and s_{t+n}.
+            label, weight = self._labels_from(self._target_states(replay), batch)
             examples = examples.clone(False)
             examples.set(keys.action, self._act(examples))
 

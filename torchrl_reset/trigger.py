@@ -184,13 +184,7 @@ class ResetTriggerTransform(Transform):
 
     def _step(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase) -> TensorDictBase:
         shape = (*next_tensordict.batch_size, 1)
-        if next_tensordict.get(self.truncated_key, None) is None:
-            # The base env may not write the truncated entry this transform adds to the specs.
-            done = next_tensordict.get(self.done_key, None)
-            next_tensordict.set(
-                self.truncated_key,
-                torch.zeros(shape, dtype=torch.bool, device=next_tensordict.device) if done is None else torch.zeros_like(done),
-            )
+        self._ensure_truncated(next_tensordict)
         if not self.enabled:
             next_tensordict.set(self.score_key, torch.full(shape, float("nan"), device=next_tensordict.device))
             next_tensordict.set(self.trigger_key, torch.zeros(shape, dtype=torch.bool, device=next_tensordict.device))
@@ -211,13 +205,19 @@ class ResetTriggerTransform(Transform):
         shape = (*tensordict_reset.batch_size, 1)
         tensordict_reset.set(self.score_key, torch.full(shape, float("nan"), device=tensordict_reset.device))
         tensordict_reset.set(self.trigger_key, torch.zeros(shape, dtype=torch.bool, device=tensordict_reset.device))
-        if tensordict_reset.get(self.truncated_key, None) is None:
-            done = tensordict_reset.get(self.done_key, None)
-            tensordict_reset.set(
-                self.truncated_key,
-                torch.zeros(shape, dtype=torch.bool, device=tensordict_reset.device) if done is None else torch.zeros_like(done),
-            )
+        self._ensure_truncated(tensordict_reset)
         return tensordict_reset
+
+    def _ensure_truncated(self, tensordict: TensorDictBase) -> None:
+        """Writes a False truncated entry where the base env writes none (this transform adds it to the specs)."""
+        if tensordict.get(self.truncated_key, None) is None:
+            done = tensordict.get(self.done_key, None)
+            flag = (
+                torch.zeros((*tensordict.batch_size, 1), dtype=torch.bool, device=tensordict.device)
+                if done is None
+                else torch.zeros_like(done)
+            )
+            tensordict.set(self.truncated_key, flag)
 
     def transform_output_spec(self, output_spec: Composite) -> Composite:
         output_spec = super().transform_output_spec(output_spec)
