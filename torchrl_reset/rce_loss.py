@@ -161,7 +161,8 @@ class RCELoss(LossModule):
         if not self.classifier_network.has_prior:
             return
         source = self.classifier_network_params
-        target = self.target_classifier_network_params
+        # read the module directly: the attribute access would warn that no target updater exists yet
+        target = self._modules["target_classifier_network_params"]
         unlocked = target.is_locked
         if unlocked:
             target.unlock_()
