@@ -4,7 +4,6 @@ from __future__ import annotations
 import warnings
 from collections import OrderedDict
 from collections.abc import Callable, Iterator, Sequence
-from typing import Any
 
 import torch
 from tensordict import TensorDict, TensorDictBase
@@ -15,6 +14,7 @@ from torchrl.envs import EnvBase, TransformedEnv
 from torchrl.envs.transforms import Compose
 from torchrl.envs.utils import ExplorationType, set_exploration_type, step_mdp
 
+from ._validation import check_int, is_int_at_least
 from .example_buffer import InitialStateBuffer
 from .trigger import ResetTriggerTransform
 
@@ -157,26 +157,21 @@ class DualCollector(BaseCollector):
     ) -> None:
         super().__init__()
 
-        def positive_int(name: str, value: Any, minimum: int = 1) -> int:
-            if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
-                raise ValueError(f"{name} must be an integer >= {minimum}, got {value!r}.")
-            return value
-
-        self.max_forward_steps = positive_int("max_forward_steps (H_f)", max_forward_steps)
+        self.max_forward_steps = check_int("max_forward_steps (H_f)", max_forward_steps)
         if max_reset_steps is None:
             max_reset_steps = 2 * max_forward_steps
-        self.max_reset_steps = positive_int("max_reset_steps (H_r)", max_reset_steps)
-        self.min_reset_steps = positive_int("min_reset_steps", min_reset_steps, minimum=0)
+        self.max_reset_steps = check_int("max_reset_steps (H_r)", max_reset_steps)
+        self.min_reset_steps = check_int("min_reset_steps", min_reset_steps, minimum=0)
         if self.min_reset_steps > self.max_reset_steps:
             raise ValueError(
                 f"min_reset_steps ({min_reset_steps}) exceeds max_reset_steps (H_r = {max_reset_steps}): "
                 "no reset episode could ever succeed."
             )
-        self.frames_per_batch = self.requested_frames_per_batch = positive_int("frames_per_batch", frames_per_batch)
-        if isinstance(total_frames, bool) or not isinstance(total_frames, int) or (total_frames < 1 and total_frames != -1):
+        self.frames_per_batch = self.requested_frames_per_batch = check_int("frames_per_batch", frames_per_batch)
+        if total_frames != -1 and not is_int_at_least(total_frames, 1):
             raise ValueError(f"total_frames must be a positive integer or -1, got {total_frames!r}.")
         self.total_frames = total_frames
-        self.max_events = positive_int("max_events", max_events)
+        self.max_events = check_int("max_events", max_events)
 
         env = create_env_fn if isinstance(create_env_fn, EnvBase) else create_env_fn()
         if not isinstance(env, EnvBase):

@@ -14,6 +14,8 @@ from tensordict.nn import TensorDictModuleBase
 from tensordict.utils import NestedKey
 from torch import nn
 
+from ._validation import check_int, is_int_at_least
+
 __all__ = [
     "EnsembleValueOperator",
     "reduce_members",
@@ -115,15 +117,11 @@ class EnsembleValueOperator(TensorDictModuleBase):
         dtype: torch.dtype | None = None,
     ) -> None:
         super().__init__()
-        for name, value in (("observation_dim", observation_dim), ("action_dim", action_dim)):
-            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-                raise ValueError(f"{name} must be a positive integer, got {value!r}.")
-        if isinstance(num_members, bool) or not isinstance(num_members, int) or num_members < 1:
-            raise ValueError(f"num_members (the ensemble size K) must be an integer >= 1, got {num_members!r}.")
+        check_int("observation_dim", observation_dim)
+        check_int("action_dim", action_dim)
+        check_int("num_members (the ensemble size K)", num_members)
         hidden_sizes = tuple(hidden_sizes)
-        if not hidden_sizes or any(
-            isinstance(h, bool) or not isinstance(h, int) or h < 1 for h in hidden_sizes
-        ):
+        if not hidden_sizes or not all(is_int_at_least(h, 1) for h in hidden_sizes):
             raise ValueError(f"hidden_sizes must be a non-empty sequence of positive integers, got {hidden_sizes!r}.")
         prior_scale = float(prior_scale)
         if not math.isfinite(prior_scale) or prior_scale < 0:

@@ -8,6 +8,8 @@ from tensordict import TensorDictBase
 from tensordict.utils import NestedKey
 from torchrl.data import LazyTensorStorage, RandomSampler, ReplayBuffer
 
+from ._validation import check_int
+
 __all__ = ["InitialStateBuffer"]
 
 
@@ -46,8 +48,7 @@ class InitialStateBuffer:
         *,
         device: torch.device | str = "cpu",
     ) -> None:
-        if isinstance(max_size, bool) or not isinstance(max_size, int) or max_size < 1:
-            raise ValueError(f"max_size must be a positive integer, got {max_size!r}.")
+        check_int("max_size", max_size)
         self.state_keys = list(state_keys)
         if not self.state_keys:
             raise ValueError("state_keys must name at least one state entry.")

@@ -8,6 +8,8 @@ from tensordict import TensorDict, TensorDictBase
 from tensordict.utils import NestedKey
 from torchrl.envs.transforms import Transform
 
+from ._validation import check_int
+
 __all__ = ["NStepStateTransform"]
 
 
@@ -64,8 +66,7 @@ class NStepStateTransform(Transform):
         done_key: NestedKey = ("next", "done"),
         out_key: NestedKey = "nstep",
     ) -> None:
-        if isinstance(n_steps, bool) or not isinstance(n_steps, int) or n_steps < 1:
-            raise ValueError(f"n_steps must be an integer >= 1, got {n_steps!r}.")
+        check_int("n_steps", n_steps)
         super().__init__()
         self.n_steps = n_steps
         self.state_keys = list(state_keys)

@@ -10,6 +10,7 @@ from tensordict.nn import TensorDictModule
 from tensordict.utils import NestedKey
 from torchrl.objectives import LossModule
 
+from ._validation import check_int
 from .ensemble import EnsembleValueOperator, success_probability
 
 __all__ = ["RCELoss"]
@@ -123,8 +124,7 @@ class RCELoss(LossModule):
         gamma = float(gamma)
         if not (0.0 < gamma < 1.0):
             raise ValueError(f"gamma must lie in (0, 1), got {gamma!r}.")
-        if isinstance(n_steps, bool) or not isinstance(n_steps, int) or n_steps < 1:
-            raise ValueError(f"n_steps must be an integer >= 1, got {n_steps!r}.")
+        check_int("n_steps", n_steps)
         if not isinstance(classifier_network, EnsembleValueOperator):
             raise TypeError(
                 f"classifier_network must be an EnsembleValueOperator, got {type(classifier_network).__name__}."
