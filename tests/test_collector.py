@@ -5,13 +5,12 @@ import io
 
 import pytest
 import torch
-from tensordict import TensorDict
 from tensordict.nn import TensorDictModule, TensorDictSequential
 from torch import nn
 from torchrl.envs import TransformedEnv
 from torchrl.modules import OrnsteinUhlenbeckProcessModule
 
-from torchrl_reset import DualCollector, EnsembleValueOperator, ResetTriggerTransform
+from torchrl_reset import DualCollector, ResetTriggerTransform
 from torchrl_reset_envs import ChainEnv
 
 
@@ -130,9 +129,13 @@ def test_counters_and_example_buffer_match_the_yielded_transitions():
     assert collector.reset_success_rate == pytest.approx(c["successful_resets"] / c["reset_episodes"])
     # one example per forward episode started: the first state, then one after every reset episode
     assert len(collector.example_buffer) == 1 + c["reset_episodes"]
-    # distinct episode ids match the episodes that yielded steps
+    # distinct episode ids match the episodes that executed at least one step (a forward episode
+    # triggered on its first action executes none), plus the episode still running at the end
+    events = collector.pop_events()
+    assert len(events) == c["forward_episodes"] + c["reset_episodes"]
+    running = 1 if collector._phase_steps > 0 else 0
     ids = steps["collector", "traj_ids"]
-    assert len(ids.unique()) == c["reset_episodes"] + c["forward_episodes"] - c["triggered_at_start"] if "triggered_at_start" in c else True
+    assert len(ids.unique()) == sum(1 for e in events if e["steps"] > 0) + running
     assert c["triggered_resets"] > 0 and c["requested_resets"] > 0 and c["successful_resets"] > 0
 
 
@@ -190,7 +193,7 @@ def test_same_seed_gives_the_same_run():
 def test_resuming_from_state_dict_continues_identically():
     reference = make_noisy_collector(200)
     reference.set_seed(11)
-    batches, saved = [], None
+    batches = []
     for i, batch in enumerate(reference):
         batches.append(batch)
         if i == 99:
