@@ -55,18 +55,12 @@ def find_trigger_transforms(env: EnvBase) -> list[ResetTriggerTransform]:
 
 def _state_owner(env: EnvBase):
     """The innermost env (or wrapper) offering ``get_simulator_state`` / ``set_simulator_state``, if any."""
-    candidates = []
-    current = env
     while True:
-        candidates.append(current)
-        if isinstance(current, TransformedEnv):
-            current = current.base_env
-        else:
-            break
-    for candidate in candidates:
-        if callable(getattr(candidate, "get_simulator_state", None)) and callable(getattr(candidate, "set_simulator_state", None)):
-            return candidate
-    return None
+        if callable(getattr(env, "get_simulator_state", None)) and callable(getattr(env, "set_simulator_state", None)):
+            return env
+        if not isinstance(env, TransformedEnv):
+            return None
+        env = env.base_env
 
 
 class DualCollector(BaseCollector):
@@ -193,6 +187,8 @@ class DualCollector(BaseCollector):
                 raise ValueError(f"the env's trigger transforms write different keys {keys}; pass trigger_key.")
             trigger_key = keys.pop()
         self.trigger_key = trigger_key
+        if reset_success_key is None:
+            raise ValueError("reset_success_key is required: the env's at-initial-state flag ends reset episodes.")
         self.reset_success_key = reset_success_key
         self.init_key = init_key
         self.exploration_type = exploration_type
@@ -377,14 +373,11 @@ class DualCollector(BaseCollector):
 
     @staticmethod
     def _mark_end(step: TensorDictBase) -> None:
+        # every yielded step carries both flags (see _step)
         for key in ("truncated", "done"):
-            value = step.get(("next", key), None)
-            flag = torch.ones(1, dtype=torch.bool, device=step.device)
-            step.set(("next", key), flag if value is None else value | flag.reshape(value.shape))
+            step.set(("next", key), torch.ones_like(step.get(("next", key))))
 
     def iterator(self) -> Iterator[TensorDictBase]:
-        if self.reset_success_key is None:
-            raise ValueError("reset_success_key is required.")
         if self._td is None:
             self._start()
         pending: list[TensorDictBase] = []

@@ -210,7 +210,9 @@ class RCELoss(LossModule):
         """The shared label ``y`` and weight ``1 + gamma * w_y`` for each transition, without gradient."""
         replay = tensordict.reshape(-1) if tensordict.batch_dims != 1 else tensordict
         with torch.no_grad():
-            return self._labels_from(self._target_states(replay), replay.shape[0])
+            states = self._target_states(replay)
+            states.set(self.tensor_keys.action, self._act(states))
+            return self._labels_from(states, replay.shape[0])
 
     def _target_states(self, replay: TensorDictBase) -> TensorDictBase:
         """``s_{t+1}`` (and ``s_{t+n}`` when n > 1) stacked, for one actor and one target pass."""
@@ -220,9 +222,8 @@ class RCELoss(LossModule):
         return torch.cat(states, 0)
 
     def _labels_from(self, target_states: TensorDictBase, batch: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """Labels and weights from ``s_{t+1}`` (and ``s_{t+n}``) already paired with the policy's actions."""
         gamma = self.gamma
-        target_states = target_states.clone(False)
-        target_states.set(self.tensor_keys.action, self._act(target_states))
         ratio = success_probability(self._classifier_logits(self.target_classifier_network_params, target_states))
         w1 = ratio[:batch]
         label = gamma * w1 / (1.0 + gamma * w1)
@@ -249,10 +250,13 @@ class RCELoss(LossModule):
         gamma = self.gamma
 
         with torch.no_grad():
-            # One actor pass and one target-classifier pass for s_{t+1} and s_{t+n}.
-            label, weight = self._labels_from(self._target_states(replay), batch)
-            examples = examples.clone(False)
-            examples.set(keys.action, self._act(examples))
+            # One actor pass for s_{t+1}, s_{t+n} and s*; one target-classifier pass for the first two.
+            targets = self._target_states(replay)
+            num_targets = targets.shape[0]
+            acting = torch.cat([targets, examples], 0)
+            acting.set(keys.action, self._act(acting))
+            label, weight = self._labels_from(acting[:num_targets], batch)
+            examples = acting[num_targets:]
 
         # Classifier loss: examples and replay rows in one pass.
         replay_in = states.clone(False)
