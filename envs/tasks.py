@@ -1,0 +1,179 @@
+"""The task table, gymnasium registration and the torchrl factory :func:`make_env`."""
+from __future__ import annotations
+
+import difflib
+from dataclasses import dataclass, field
+from typing import Any
+
+import gymnasium
+import torch
+from torchrl.data import Categorical, Composite, Unbounded
+from torchrl.envs import Compose, GymWrapper, TransformedEnv
+from torchrl.envs.gym_like import default_info_dict_reader
+
+from .ball_in_cup import BallInCupEnv
+from .cliff import CliffCheetahEnv, CliffWalkerEnv
+from .peg import PegInsertionEnv
+
+__all__ = ["TaskSpec", "TASKS", "GYM_NAMESPACE", "gym_id", "make_env", "make_gym_env", "register_gym_envs", "task_spec"]
+
+#: gymnasium namespace of the tasks' ids: ``torchrl_reset/CliffCheetah-v0`` and so on.
+GYM_NAMESPACE = "torchrl_reset"
+#: The tensordict entries :func:`make_env` adds from the gym ``info`` dict.
+INFO_KEYS = ("reset_success", "reset_reward", "irrecoverable")
+
+
+@dataclass(frozen=True)
+class TaskSpec:
+    """One task: its names, its gymnasium class and arguments, and the paper's numbers.
+
+    Attributes:
+        name: the task's name in recipes and :func:`make_env` (``"cliff_cheetah"``).
+        gym_name: the gymnasium id without namespace (``"CliffCheetah-v0"``).
+        env_class: the gymnasium environment class.
+        kwargs: arguments for ``env_class``.
+        forward_horizon: H_f, the forward episode length.
+        p_thresh: the reset trigger's success-probability threshold.
+        has_irrecoverable: whether the task has irrecoverable states.
+        reconstructed: whether the task's definitions are ours (not from the authors' release).
+    """
+
+    name: str
+    gym_name: str
+    env_class: type
+    kwargs: dict[str, Any] = field(default_factory=dict)
+    forward_horizon: int = 0
+    p_thresh: float = 0.0
+    has_irrecoverable: bool = False
+    reconstructed: bool = False
+
+    @property
+    def gym_id(self) -> str:
+        """The registered id, usable as ``gymnasium.make(f"torchrl_reset_envs:{spec.gym_id}")``."""
+        return f"{GYM_NAMESPACE}/{self.gym_name}"
+
+
+TASKS: dict[str, TaskSpec] = {
+    spec.name: spec
+    for spec in (
+        TaskSpec("cliff_cheetah", "CliffCheetah-v0", CliffCheetahEnv, {}, 500, 0.05, True),
+        TaskSpec("cliff_walker", "CliffWalker-v0", CliffWalkerEnv, {}, 500, 0.05, True),
+        TaskSpec("peg_insertion_insert", "PegInsertionInsert-v0", PegInsertionEnv, {"forward": "insert"}, 100, 0.1),
+        TaskSpec("peg_insertion_remove", "PegInsertionRemove-v0", PegInsertionEnv, {"forward": "remove"}, 100, 0.1),
+        TaskSpec("ball_in_cup_catch", "BallInCupCatch-v0", BallInCupEnv, {"forward": "catch"}, 100, 0.1, reconstructed=True),
+        TaskSpec("ball_in_cup_throw", "BallInCupThrow-v0", BallInCupEnv, {"forward": "throw"}, 100, 0.1, reconstructed=True),
+    )
+}
+
+
+class TaskInfoReader(default_info_dict_reader):
+    """Copies the task flags from gym's ``info`` into tensordict entries of their spec's shape and dtype."""
+
+    def __call__(self, info_dict: dict[str, Any], tensordict):
+        for key in self.keys:
+            if key not in info_dict:
+                raise KeyError(f"the env's info has no {key!r} entry (got {sorted(info_dict)}).")
+            spec = self.info_spec[key]
+            value = torch.as_tensor(info_dict[key], dtype=spec.dtype, device=spec.device)
+            tensordict.set(key, value.reshape(spec.shape))
+        return tensordict
+
+
+def task_spec(task: str) -> TaskSpec:
+    """The :class:`TaskSpec` of ``task``, by name (``"cliff_cheetah"``) or gymnasium id; a clear error otherwise."""
+    if isinstance(task, TaskSpec):
+        return task
+    if not isinstance(task, str):
+        raise TypeError(f"task must be a task name string, got {type(task).__name__}.")
+    if task in TASKS:
+        return TASKS[task]
+    for spec in TASKS.values():
+        if task in (spec.gym_name, spec.gym_id, f"torchrl_reset_envs:{spec.gym_id}"):
+            return spec
+    close = difflib.get_close_matches(task, list(TASKS), n=3)
+    hint = f" Did you mean {' or '.join(map(repr, close))}?" if close else ""
+    raise ValueError(f"unknown task {task!r}.{hint} Known tasks: {', '.join(TASKS)}.")
+
+
+def gym_id(task: str) -> str:
+    """The full string for ``gymnasium.make``/``GymEnv`` that needs no prior import."""
+    return f"torchrl_reset_envs:{task_spec(task).gym_id}"
+
+
+def register_gym_envs() -> None:
+    """Register every task with gymnasium (done on ``import torchrl_reset_envs``; repeated calls do nothing).
+
+    No ``max_episode_steps``: the envs never end episodes by themselves, the collector does.
+    """
+    for spec in TASKS.values():
+        if spec.gym_id in gymnasium.registry:
+            continue
+        gymnasium.register(
+            id=spec.gym_id,
+            entry_point=f"{spec.env_class.__module__}:{spec.env_class.__name__}",
+            kwargs=dict(spec.kwargs),
+            max_episode_steps=None,
+        )
+
+
+def make_gym_env(task: str, **kwargs) -> gymnasium.Env:
+    """The task's gymnasium environment without gymnasium's wrappers (``kwargs``: ``render_mode``, ``width``...)."""
+    spec = task_spec(task)
+    return spec.env_class(**spec.kwargs, **kwargs)
+
+
+def make_env(
+    task: str,
+    *,
+    seed: int | None = None,
+    device: torch.device | str | None = None,
+    render_mode: str | None = None,
+    **kwargs,
+) -> TransformedEnv:
+    """A torchrl env of ``task``, with the at-initial-state check, the reset reward and the irrecoverable flag.
+
+    The step and reset tensordicts carry ``observation`` (float32), ``reward``, ``reset_success``
+    (bool, shape ``(1,)``), ``reset_reward`` (float32, ``(1,)``) and ``irrecoverable`` (bool, ``(1,)``).
+    The returned :class:`~torchrl.envs.TransformedEnv` has an empty transform to append to, and
+    ``env.task_spec``, ``env.forward_horizon`` (H_f) and ``env.p_thresh`` as metadata. Its simulator
+    state is reachable through ``get_simulator_state``/``set_simulator_state`` (so
+    :class:`~torchrl_reset.DualCollector` resumes exactly).
+
+    Args:
+        task (str): a name from :data:`TASKS` (``"cliff_cheetah"``, ``"cliff_walker"``,
+            ``"peg_insertion_insert"``, ``"peg_insertion_remove"``, ``"ball_in_cup_catch"``,
+            ``"ball_in_cup_throw"``) or a gymnasium id.
+        seed (int, optional): seeds the env's start-state noise.
+        device: the tensordicts' device.
+        render_mode (str, optional): ``"rgb_array"`` to allow ``env.render()`` (needs an OpenGL backend).
+        **kwargs: passed to the gymnasium class (``width``, ``height``, ``camera``).
+
+    Examples:
+        >>> from torchrl.envs.utils import check_env_specs
+        >>> from torchrl_reset_envs import make_env
+        >>> env = make_env("peg_insertion_insert", seed=0)
+        >>> check_env_specs(env)
+        >>> env.forward_horizon, env.p_thresh
+        (100, 0.1)
+        >>> env.reset()["reset_success"]
+        tensor([True])
+    """
+    spec = task_spec(task)
+    gym_env = make_gym_env(spec, render_mode=render_mode, **kwargs)
+    base = GymWrapper(gym_env, device=device)
+    flag = Categorical(2, shape=(1,), dtype=torch.bool, device=base.device)
+    base.set_info_dict_reader(
+        TaskInfoReader(
+            list(INFO_KEYS),
+            spec=Composite(
+                reset_success=flag.clone(),
+                reset_reward=Unbounded(shape=(1,), dtype=torch.float32, device=base.device),
+                irrecoverable=flag.clone(),
+            ),
+        )
+    )
+    env = TransformedEnv(base, Compose())
+    env.task_spec = spec
+    if seed is not None:
+        env.set_seed(seed)
+    return env
