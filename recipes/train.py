@@ -1,0 +1,298 @@
+"""Train a forward agent with a learned reset agent (ours, LNT or LNT-sparse) on one task, without free resets.
+
+    python recipes/train.py task=peg_insertion_insert algo=ours seed=0            # the paper's settings
+    python recipes/train.py task=cliff_cheetah algo=lnt preset=quick              # a short CPU run
+    python recipes/train.py task=cliff_cheetah algo=lnt preset=quick resume=true  # continue a killed run
+
+Tasks: cliff_cheetah, cliff_walker, peg_insertion_insert, peg_insertion_remove, ball_in_cup_catch,
+ball_in_cup_throw. Everything lands in ``run_dir`` (default ``runs/<task>/<algo>/seed<seed>``):
+``progress.csv`` (the training metrics every ``log_every`` steps), ``eval.csv`` (one row per
+evaluation), ``triggers.csv`` (the state before each triggered reset), ``summary.json`` (the paper's
+Table 1 metrics), ``checkpoints/`` and torchrl's CSV (and optionally wandb) logs. ``report.py`` turns
+run folders into the paper's table and figures.
+"""
+from __future__ import annotations
+
+import json
+import logging
+import math
+import random
+import sys
+import time
+from pathlib import Path
+
+import hydra
+import numpy as np
+import torch
+import torchrl
+from omegaconf import DictConfig, OmegaConf
+from tqdm import tqdm
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from train_utils import (  # noqa: E402
+    Checkpoints,
+    ConfigError,
+    CsvTable,
+    evaluate,
+    lnt_batch,
+    make_buffers,
+    make_forward_agent,
+    make_reset_agent,
+    make_task_env,
+    reset_horizon,
+    validate,
+    with_exploration,
+)
+
+from torchrl_reset import DualCollector  # noqa: E402
+from torchrl_reset_envs import make_env  # noqa: E402
+
+PROGRESS_FIELDS = [
+    "frames", "forward_steps", "reset_steps", "forward_episodes", "reset_episodes", "manual_resets",
+    "triggered_resets", "requested_resets", "successful_resets", "forward_share", "reset_success_rate",
+    "eval_return", "average_return", "steps_per_second", "loss_forward_actor", "loss_forward_critic",
+    "loss_reset_actor", "loss_reset_critic",
+]
+EVAL_FIELDS = ["frames", "forward_return", "forward_steps", "triggered", "reset_success", "reset_steps"]
+TRIGGER_FIELDS = ["frames", "steps", "value", "observation"]
+
+log = logging.getLogger("torchrl_reset.train")
+
+
+class TrainingDiverged(RuntimeError):
+    """A loss became NaN or infinite; the last good state was checkpointed."""
+
+
+def train(cfg: DictConfig) -> dict:
+    """Run (or resume) one training run; returns the summary also written to ``summary.json``."""
+    validate(cfg)
+    run_dir = Path(cfg.run_dir)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    torch.set_num_threads(int(cfg.threads))
+    torch.manual_seed(cfg.seed)
+    np.random.seed(cfg.seed)
+    random.seed(cfg.seed)
+    logging.getLogger("torchrl").setLevel(logging.WARNING)
+
+    # ------------------------------------------------------------------ build
+    obs_dim, action_spec = task_dimensions(cfg)
+    forward = make_forward_agent(cfg, obs_dim, action_spec)
+    reset = make_reset_agent(cfg, obs_dim, action_spec)
+    for agent in (forward, reset):
+        agent.loss.to(cfg.device)
+    env, _ = make_task_env(cfg, reset)
+    eval_env, eval_trigger = make_task_env(cfg, reset)
+    collector = DualCollector(
+        env,
+        with_exploration(forward.actor, env.action_spec, cfg),
+        with_exploration(reset.actor, env.action_spec, cfg),
+        max_forward_steps=int(cfg.task.forward_horizon),
+        max_reset_steps=reset_horizon(cfg),
+        min_reset_steps=int(cfg.reset.min_steps),
+        total_frames=int(cfg.total_steps),
+    )
+    collector.set_seed(int(cfg.seed))
+    eval_env.set_seed(int(cfg.seed) + 10_000)
+    forward_rb, reset_rb = make_buffers(cfg)
+    checkpoints = Checkpoints(run_dir / "checkpoints", keep=int(cfg.keep_checkpoints))
+    progress = CsvTable(run_dir / "progress.csv", PROGRESS_FIELDS)
+    evals = CsvTable(run_dir / "eval.csv", EVAL_FIELDS)
+    triggers = CsvTable(run_dir / "triggers.csv", TRIGGER_FIELDS)
+    history = {"eval_returns": [], "last_losses": {}, "elapsed": 0.0}
+
+    def write_checkpoint(folder: Path) -> None:
+        torch.save(
+            {
+                "forward_loss": forward.loss.state_dict(),
+                "reset_loss": reset.loss.state_dict(),
+                "forward_optimizer": forward.optimizer.state_dict(),
+                "reset_optimizer": reset.optimizer.state_dict(),
+                "collector": collector.state_dict(),
+                "history": history,
+                "rng": {"torch": torch.get_rng_state(), "numpy": np.random.get_state(), "python": random.getstate()},
+            },
+            folder / "state.pt",
+        )
+        for name, rb in (("forward_buffer", forward_rb), ("reset_buffer", reset_rb)):
+            if len(rb):  # torchrl cannot dump a buffer that never received data
+                rb.dumps(folder / name)
+
+    def checkpoint() -> Path:
+        meta = {"task": cfg.task.name, "algo": cfg.algo.name, "seed": int(cfg.seed), "frames": collector.frames}
+        return checkpoints.save(collector.frames, write_checkpoint, meta)
+
+    if cfg.resume:
+        folder = checkpoints.latest()
+        state = torch.load(folder / "state.pt", weights_only=False)
+        forward.loss.load_state_dict(state["forward_loss"])
+        reset.loss.load_state_dict(state["reset_loss"])
+        forward.optimizer.load_state_dict(state["forward_optimizer"])
+        reset.optimizer.load_state_dict(state["reset_optimizer"])
+        for name, rb in (("forward_buffer", forward_rb), ("reset_buffer", reset_rb)):
+            if (folder / name).exists():
+                rb.loads(folder / name)
+        collector.load_state_dict(state["collector"])
+        history = state["history"]
+        torch.set_rng_state(state["rng"]["torch"])
+        np.random.set_state(state["rng"]["numpy"])
+        random.setstate(state["rng"]["python"])
+        for table in (progress, evals, triggers):
+            table.truncate_after(collector.frames)
+        log.info("resumed from %s at step %d", folder, collector.frames)
+    else:
+        (run_dir / "config.yaml").write_text(OmegaConf.to_yaml(cfg, resolve=True))
+
+    loggers = make_loggers(cfg, run_dir)
+    h_f, h_r = int(cfg.task.forward_horizon), reset_horizon(cfg)
+    curriculum_index = int(cfg.task.curriculum.index)
+    heat_up = int(cfg.heat_up)
+    ensemble_size = int(cfg.algo.num_members)
+
+    def update(agent, sample, names) -> dict[str, float]:
+        losses = agent.loss(sample)
+        total = sum(losses[name] for name in names)
+        if not torch.isfinite(total):
+            path = checkpoint()
+            raise TrainingDiverged(
+                f"non-finite loss at step {collector.frames} ({', '.join(f'{n}={float(losses[n])}' for n in names)}); "
+                f"the last good state is checkpointed in {path}. Lower the learning rates or check the inputs."
+            )
+        agent.optimizer.zero_grad()
+        total.backward()
+        agent.optimizer.step()
+        agent.targets.step()
+        return {name: float(losses[name].detach()) for name in names}
+
+    def log_row(elapsed: float) -> dict:
+        c = collector.counters
+        returns = history["eval_returns"]
+        losses = history["last_losses"]
+        return {
+            "frames": collector.frames, **{k: c[k] for k in PROGRESS_FIELDS if k in c},
+            "forward_share": collector.forward_share, "reset_success_rate": collector.reset_success_rate,
+            "eval_return": returns[-1] if returns else float("nan"),
+            "average_return": float(np.mean(returns)) if returns else float("nan"),
+            "steps_per_second": collector.frames / max(elapsed, 1e-9), **losses,
+        }
+
+    bar = tqdm(total=int(cfg.total_steps), initial=collector.frames, desc=f"{cfg.task.name}/{cfg.algo.name}",
+               unit="step", mininterval=2.0, disable=not cfg.progress_bar, dynamic_ncols=True)
+    start = time.perf_counter() - history["elapsed"]
+    interrupted = False
+    try:
+        for batch in collector:
+            batch = batch.to(cfg.device)
+            if DualCollector.phase_of(batch) == "forward":
+                forward_rb.extend(batch)
+                if collector.counters["forward_steps"] > heat_up:
+                    out = update(forward, forward_rb.sample(), ("loss_actor", "loss_value"))
+                    history["last_losses"].update(loss_forward_actor=out["loss_actor"], loss_forward_critic=out["loss_value"])
+            else:
+                reset_rb.extend(batch)
+                if collector.counters["reset_steps"] > heat_up:
+                    sample = reset_rb.sample().to(cfg.device)
+                    if cfg.algo.name == "ours":
+                        sample.set("example", collector.example_buffer.sample(sample.shape[0]).to(cfg.device))
+                        out = update(reset, sample, ("loss_actor", "loss_classifier"))
+                        history["last_losses"].update(loss_reset_actor=out["loss_actor"], loss_reset_critic=out["loss_classifier"])
+                    else:
+                        out = update(reset, lnt_batch(sample, cfg.algo, ensemble_size), ("loss_actor", "loss_value"))
+                        history["last_losses"].update(loss_reset_actor=out["loss_actor"], loss_reset_critic=out["loss_value"])
+            frames = collector.frames
+            bar.update(batch.numel())
+            for event in collector.pop_events():
+                if event["outcome"] == "triggered":
+                    obs = event["state"]["observation"].flatten().tolist()
+                    triggers.append({"frames": event["frame"], "steps": event["steps"], "value": obs[curriculum_index],
+                                     "observation": " ".join(f"{v:.5g}" for v in obs)})
+            if frames % int(cfg.eval_every) == 0:
+                result = evaluate(eval_env, eval_trigger, forward.actor, reset.actor, horizon=h_f, reset_horizon=h_r,
+                                  min_reset_steps=int(cfg.reset.min_steps), gamma=float(cfg.gamma))
+                history["eval_returns"].append(result["forward_return"])
+                evals.append({"frames": frames, **result})
+            if frames % int(cfg.log_every) == 0:
+                history["elapsed"] = time.perf_counter() - start
+                row = log_row(history["elapsed"])
+                progress.append(row)
+                for logger in loggers:
+                    logger.log_metrics({k: v for k, v in row.items() if k != "frames" and not _isnan(v)}, step=frames)
+                bar.set_postfix(sps=f"{row['steps_per_second']:.0f}", manual=row["manual_resets"],
+                                ret=f"{row['eval_return']:.2f}", refresh=False)
+            if frames % int(cfg.checkpoint_every) == 0:
+                history["elapsed"] = time.perf_counter() - start
+                checkpoint()
+    except KeyboardInterrupt:
+        interrupted = True
+        log.warning("interrupted at step %d: checkpointing", collector.frames)
+    finally:
+        bar.close()
+    history["elapsed"] = time.perf_counter() - start
+    checkpoint()
+    summary = {
+        "task": cfg.task.name, "algo": cfg.algo.name, "seed": int(cfg.seed), "p_thresh": float(cfg.task.p_thresh),
+        "steps": collector.frames, "finished": collector.frames >= int(cfg.total_steps) and not interrupted,
+        "average_return": float(np.mean(history["eval_returns"])) if history["eval_returns"] else None,
+        "manual_resets": collector.counters["manual_resets"],
+        "forward_share": collector.forward_share,
+        "reset_success_rate": collector.reset_success_rate,
+        "final_eval_return": history["eval_returns"][-1] if history["eval_returns"] else None,
+        "evaluations": len(history["eval_returns"]),
+        **{k: collector.counters[k] for k in ("triggered_resets", "requested_resets", "successful_resets", "reset_episodes")},
+        "seconds": round(history["elapsed"], 1),
+        "steps_per_second": round(collector.frames / max(history["elapsed"], 1e-9), 1),
+        "device": str(cfg.device), "torch": torch.__version__, "torchrl": torchrl.__version__,
+    }
+    (run_dir / "summary.json").write_text(json.dumps(summary, indent=2, default=_json_default))
+    collector.shutdown()
+    eval_env.close()
+    return summary
+
+
+def task_dimensions(cfg: DictConfig):
+    """Observation size and action spec of the task (from a throw-away env)."""
+    env = make_env(cfg.task.name)
+    out = env.observation_spec["observation"].shape[-1], env.action_spec.clone()
+    env.close()
+    return out
+
+
+def make_loggers(cfg: DictConfig, run_dir: Path) -> list:
+    from torchrl.record.loggers import CSVLogger
+
+    loggers = [CSVLogger(exp_name="torchrl", log_dir=str(run_dir / "logs"))]
+    if cfg.logger.wandb:
+        from torchrl.record.loggers.wandb import WandbLogger
+
+        loggers.append(WandbLogger(
+            exp_name=f"{cfg.task.name}-{cfg.algo.name}-seed{cfg.seed}", offline=cfg.logger.wandb_mode != "online",
+            save_dir=str(run_dir / "wandb"), project=cfg.logger.project, config=OmegaConf.to_container(cfg, resolve=True),
+        ))
+    return loggers
+
+
+def _isnan(value) -> bool:
+    return isinstance(value, float) and math.isnan(value)
+
+
+def _json_default(value):
+    if isinstance(value, (np.floating, np.integer)):
+        return value.item()
+    return float(value)
+
+
+@hydra.main(version_base="1.3", config_path="conf", config_name="config")
+def main(cfg: DictConfig) -> None:
+    try:
+        summary = train(cfg)
+    except (ConfigError, TrainingDiverged) as err:
+        print(f"error: {err}", file=sys.stderr)
+        sys.exit(2 if isinstance(err, ConfigError) else 3)
+    width = max(map(len, summary))
+    for key, value in summary.items():
+        print(f"{key:<{width}}  {value:.4g}" if isinstance(value, float) else f"{key:<{width}}  {value}")
+    print(f"results in {cfg.run_dir}")
+
+
+if __name__ == "__main__":
+    main()

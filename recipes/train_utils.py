@@ -1,0 +1,329 @@
+"""Factories and helpers of the training recipe: config checks, agents, evaluation, checkpoints, logs."""
+from __future__ import annotations
+
+import csv
+import json
+import os
+import shutil
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable
+
+import torch
+from omegaconf import DictConfig, OmegaConf
+from tensordict.nn import TensorDictModule, TensorDictSequential
+from torch import nn
+from torchrl.data import LazyTensorStorage, ReplayBuffer
+from torchrl.envs import TransformedEnv
+from torchrl.envs.utils import ExplorationType, set_exploration_type, step_mdp
+from torchrl.modules import OrnsteinUhlenbeckProcessModule, TanhModule
+from torchrl.objectives import DDPGLoss, SoftUpdate
+
+from torchrl_reset import EnsembleValueOperator, NStepStateTransform, RCELoss, ResetTriggerTransform
+from torchrl_reset_envs import TASKS, make_env
+
+ALGOS = ("ours", "lnt", "lnt_sparse")
+
+
+class ConfigError(ValueError):
+    """A configuration that cannot run; raised before anything is built."""
+
+
+# ------------------------------------------------------------------------------------------ checks
+def reset_horizon(cfg: DictConfig) -> int:
+    return 2 * int(cfg.task.forward_horizon) if cfg.reset.max_steps is None else int(cfg.reset.max_steps)
+
+
+def validate(cfg: DictConfig) -> None:
+    """Raise :class:`ConfigError` for every configuration that cannot run, before training starts."""
+    problems = []
+    if cfg.task.name not in TASKS:
+        problems.append(f"unknown task {cfg.task.name!r}; known: {', '.join(TASKS)}")
+    if cfg.algo.name not in ALGOS:
+        problems.append(f"unknown algorithm {cfg.algo.name!r}; known: {', '.join(ALGOS)}")
+    if not 0.0 < float(cfg.task.p_thresh) < 1.0:
+        problems.append(f"task.p_thresh must lie in (0, 1), got {cfg.task.p_thresh}")
+    if cfg.algo.name == "ours" and cfg.algo.threshold is not None and not 0.0 < float(cfg.algo.threshold) < 1.0:
+        problems.append(f"algo.threshold (a success probability) must lie in (0, 1), got {cfg.algo.threshold}")
+    h_f = int(cfg.task.forward_horizon)
+    if h_f < 1:
+        problems.append(f"task.forward_horizon (H_f) must be >= 1, got {h_f}")
+    elif reset_horizon(cfg) < h_f:
+        problems.append(f"reset.max_steps (H_r = {reset_horizon(cfg)}) must be >= H_f = {h_f}")
+    for key in ("total_steps", "eval_every", "log_every", "checkpoint_every", "forward.batch_size", "reset.batch_size"):
+        value = OmegaConf.select(cfg, key)
+        if not isinstance(value, int) or value < 1:
+            problems.append(f"{key} must be a positive integer, got {value!r}")
+    if int(cfg.heat_up) < 0:
+        problems.append(f"heat_up must be >= 0, got {cfg.heat_up}")
+    if problems:
+        raise ConfigError("invalid configuration:\n  - " + "\n  - ".join(problems))
+    checkpoints = Checkpoints(Path(cfg.run_dir) / "checkpoints", keep=int(cfg.keep_checkpoints))
+    latest = checkpoints.latest()
+    if cfg.resume:
+        if latest is None:
+            raise ConfigError(f"resume=true but {checkpoints.root} holds no complete checkpoint to resume from.")
+        meta = json.loads((latest / "meta.json").read_text())
+        for key, value in (("task", cfg.task.name), ("algo", cfg.algo.name)):
+            if meta[key] != value:
+                raise ConfigError(
+                    f"the checkpoint in {latest} is from {key} {meta[key]!r}, this run is {key} {value!r}; "
+                    "use another run_dir or the matching task and algo."
+                )
+    elif latest is not None:
+        raise ConfigError(
+            f"{cfg.run_dir} already holds a checkpoint ({latest.name}); pass resume=true to continue it, or "
+            "choose another run_dir."
+        )
+
+
+# ------------------------------------------------------------------------------------------ agents
+def make_actor(obs_dim: int, action_spec, hidden_sizes) -> TensorDictSequential:
+    """The paper's policy: a 400-300 ReLU MLP, Xavier-uniform weights and zero biases, tanh onto the action box."""
+    layers, width = [], obs_dim
+    for size in hidden_sizes:
+        layers += [nn.Linear(width, size), nn.ReLU()]
+        width = size
+    layers.append(nn.Linear(width, action_spec.shape[-1]))
+    net = nn.Sequential(*layers)
+    for layer in net:
+        if isinstance(layer, nn.Linear):
+            nn.init.xavier_uniform_(layer.weight)
+            nn.init.zeros_(layer.bias)
+    return TensorDictSequential(
+        TensorDictModule(net, in_keys=["observation"], out_keys=["action_preactivation"]),
+        TanhModule(["action_preactivation"], ["action"], spec=action_spec),
+    )
+
+
+def with_exploration(actor, action_spec, cfg: DictConfig) -> TensorDictSequential:
+    noise = OrnsteinUhlenbeckProcessModule(
+        spec=action_spec, eps_init=1.0, eps_end=1.0, annealing_num_steps=1,
+        theta=cfg.exploration.theta, sigma=cfg.exploration.sigma, dt=cfg.exploration.dt,
+    )
+    return TensorDictSequential(actor, noise)
+
+
+@dataclass
+class Agent:
+    """One agent: its policy, loss module, optimizer and target updater."""
+
+    actor: TensorDictSequential
+    loss: Any
+    optimizer: torch.optim.Optimizer
+    targets: SoftUpdate
+    model: Any  # the critic or classifier ensemble
+
+
+def make_forward_agent(cfg: DictConfig, obs_dim: int, action_spec) -> Agent:
+    """DDPG with the paper's critic layout (action joined after the first hidden layer)."""
+    act_dim = action_spec.shape[-1]
+    actor = make_actor(obs_dim, action_spec, cfg.hidden_sizes)
+    critic = EnsembleValueOperator(
+        obs_dim, act_dim, num_members=1, hidden_sizes=tuple(cfg.hidden_sizes), prior_scale=0.0, out_keys=["state_action_value"]
+    )
+    loss = DDPGLoss(actor, critic, delay_actor=True, delay_value=True)
+    loss.make_value_estimator(gamma=cfg.gamma)
+    optimizer = torch.optim.Adam([
+        {"params": list(loss.actor_network_params.values(True, True)), "lr": cfg.forward.actor_lr},
+        {"params": list(loss.value_network_params.values(True, True)), "lr": cfg.forward.critic_lr},
+    ])
+    return Agent(actor, loss, optimizer, SoftUpdate(loss, tau=cfg.tau), critic)
+
+
+def make_reset_agent(cfg: DictConfig, obs_dim: int, action_spec) -> Agent:
+    """``ours``: RCE on a classifier ensemble with priors; ``lnt``/``lnt_sparse``: DDPG on a Q ensemble."""
+    act_dim = action_spec.shape[-1]
+    actor = make_actor(obs_dim, action_spec, cfg.hidden_sizes)
+    if cfg.algo.name == "ours":
+        model = EnsembleValueOperator(
+            obs_dim, act_dim, num_members=cfg.algo.num_members, hidden_sizes=tuple(cfg.hidden_sizes),
+            prior_scale=cfg.algo.prior_scale,
+        )
+        loss = RCELoss(actor, model, gamma=cfg.gamma, n_steps=cfg.algo.n_steps)
+        optimizer = torch.optim.Adam([
+            {"params": list(actor.parameters()), "lr": cfg.reset.actor_lr},
+            {"params": list(model.parameters()), "lr": cfg.reset.critic_lr},
+        ])
+    else:
+        model = EnsembleValueOperator(
+            obs_dim, act_dim, num_members=cfg.algo.num_members, hidden_sizes=tuple(cfg.hidden_sizes),
+            prior_scale=cfg.algo.prior_scale, out_keys=["state_action_value"],
+        )
+        loss = DDPGLoss(actor, model, delay_actor=True, delay_value=True)
+        loss.set_keys(reward="lnt_reward")
+        loss.make_value_estimator(gamma=cfg.gamma)
+        optimizer = torch.optim.Adam([
+            {"params": list(loss.actor_network_params.values(True, True)), "lr": cfg.reset.actor_lr},
+            {"params": list(loss.value_network_params.values(True, True)), "lr": cfg.reset.critic_lr},
+        ])
+    return Agent(actor, loss, optimizer, SoftUpdate(loss, tau=cfg.tau), model)
+
+
+def make_trigger(cfg: DictConfig, reset_agent: Agent) -> ResetTriggerTransform:
+    if cfg.algo.name == "ours":
+        threshold = cfg.task.p_thresh if cfg.algo.threshold is None else cfg.algo.threshold
+        return ResetTriggerTransform(reset_agent.model, float(threshold))
+    return ResetTriggerTransform(
+        reset_agent.model, float(cfg.algo.threshold), score="value", reduction="min",
+        model_out_key="state_action_value", score_key="reset_value",
+    )
+
+
+def make_task_env(cfg: DictConfig, reset_agent: Agent) -> tuple[TransformedEnv, ResetTriggerTransform]:
+    env = make_env(cfg.task.name, device=cfg.device)
+    trigger = make_trigger(cfg, reset_agent)
+    env.append_transform(trigger)
+    return env, trigger
+
+
+def make_buffers(cfg: DictConfig) -> tuple[ReplayBuffer, ReplayBuffer]:
+    forward_rb = ReplayBuffer(storage=LazyTensorStorage(cfg.forward.buffer_size), batch_size=cfg.forward.batch_size)
+    transform = NStepStateTransform(cfg.algo.n_steps) if cfg.algo.name == "ours" else None
+    reset_rb = ReplayBuffer(storage=LazyTensorStorage(cfg.reset.buffer_size), batch_size=cfg.reset.batch_size, transform=transform)
+    return forward_rb, reset_rb
+
+
+def lnt_batch(sample, algo: DictConfig, num_members: int):
+    """The LNT reset agent's batch: its reward (shaped or sparse) and done flags, one column per ensemble member."""
+    nxt = sample.get("next")
+    reward = nxt.get("reset_reward") if algo.reset_reward == "shaped" else nxt.get("reset_success").float()
+    shape = (*reward.shape[:-1], num_members)
+    nxt.set("lnt_reward", reward.expand(shape))
+    for key in ("done", "terminated"):
+        nxt.set(key, nxt.get(key).expand(shape))
+    return sample
+
+
+# ------------------------------------------------------------------------------------------ evaluation
+def evaluate(env: TransformedEnv, trigger: ResetTriggerTransform, forward_actor, reset_actor, *, horizon: int,
+             reset_horizon: int, min_reset_steps: int, gamma: float) -> dict[str, Any]:
+    """One forward and one reset episode with exploration off, from ``env.reset()`` (method.md section 7)."""
+    td = env.reset()
+    ret, forward_steps, triggered = 0.0, 0, False
+    with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
+        trigger.set_enabled(True)
+        for t in range(horizon):
+            td = env.step(forward_actor(td))
+            if bool(td.get(("next", "reset_trigger")).any()):
+                triggered = True
+                break
+            ret += gamma**t * float(td.get(("next", "reward")))
+            forward_steps += 1
+            td = step_mdp(td)
+        trigger.set_enabled(False)
+        success, reset_steps = False, 0
+        for t in range(reset_horizon):
+            td = step_mdp(env.step(reset_actor(td)))
+            reset_steps += 1
+            if bool(td.get("reset_success").any()) and reset_steps >= min_reset_steps:
+                success = True
+                break
+        trigger.set_enabled(True)
+    return {"forward_return": ret, "forward_steps": forward_steps, "triggered": triggered,
+            "reset_success": success, "reset_steps": reset_steps}
+
+
+# ------------------------------------------------------------------------------------------ checkpoints
+class Checkpoints:
+    """Complete checkpoints in ``root/step_<frames>/``, the newest named by ``root/latest``.
+
+    A checkpoint is written into a temporary folder, which is renamed into place once complete; then
+    ``latest`` is replaced atomically. A crash while checkpointing leaves the previous checkpoint and
+    ``latest`` untouched.
+    """
+
+    def __init__(self, root: Path, keep: int = 2):
+        self.root = Path(root)
+        self.keep = max(1, int(keep))
+
+    def latest(self) -> Path | None:
+        pointer = self.root / "latest"
+        if not pointer.exists():
+            return None
+        path = self.root / pointer.read_text().strip()
+        return path if (path / "meta.json").exists() else None
+
+    def save(self, frames: int, write: Callable[[Path], None], meta: dict) -> Path:
+        self.root.mkdir(parents=True, exist_ok=True)
+        tmp = self.root / f".tmp-step_{frames:010d}-{os.getpid()}"
+        if tmp.exists():
+            shutil.rmtree(tmp)
+        tmp.mkdir()
+        write(tmp)
+        (tmp / "meta.json").write_text(json.dumps(meta, indent=2))  # written last: marks the folder complete
+        _fsync_tree(tmp)
+        final = self.root / f"step_{frames:010d}"
+        if final.exists():
+            shutil.rmtree(final)
+        os.rename(tmp, final)
+        pointer_tmp = self.root / f".latest-{os.getpid()}"
+        with open(pointer_tmp, "w") as f:
+            f.write(final.name)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(pointer_tmp, self.root / "latest")
+        _fsync_dir(self.root)
+        for old in sorted(self.root.glob("step_*"))[: -self.keep]:
+            shutil.rmtree(old, ignore_errors=True)
+        return final
+
+
+def _fsync_dir(path: Path) -> None:
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def _fsync_tree(root: Path) -> None:
+    for dirpath, _, filenames in os.walk(root):
+        for name in filenames:
+            with open(os.path.join(dirpath, name), "rb") as f:
+                os.fsync(f.fileno())
+        _fsync_dir(Path(dirpath))
+
+
+# ------------------------------------------------------------------------------------------ logs
+class CsvTable:
+    """An append-only CSV file with a fixed header; on resume, rows after the checkpoint are dropped."""
+
+    def __init__(self, path: Path, fields: list[str]):
+        self.path = Path(path)
+        self.fields = fields
+
+    def truncate_after(self, frames: int) -> None:
+        if not self.path.exists():
+            return
+        with open(self.path, newline="") as f:
+            rows = [row for row in csv.DictReader(f) if int(float(row["frames"])) <= frames]
+        self._rewrite(rows)
+
+    def _rewrite(self, rows) -> None:
+        tmp = self.path.with_suffix(".tmp")
+        with open(tmp, "w", newline="") as f:
+            writer = csv.DictWriter(f, fieldnames=self.fields)
+            writer.writeheader()
+            writer.writerows(rows)
+        os.replace(tmp, self.path)
+
+    def append(self, row: dict) -> None:
+        new = not self.path.exists()
+        with open(self.path, "a", newline="") as f:
+            writer = csv.DictWriter(f, fieldnames=self.fields, extrasaction="ignore")
+            if new:
+                writer.writeheader()
+            writer.writerow(row)
+
+
+def read_csv(path: Path) -> list[dict[str, float]]:
+    with open(path, newline="") as f:
+        return [{k: _number(v) for k, v in row.items()} for row in csv.DictReader(f)]
+
+
+def _number(value: str):
+    try:
+        return float(value)
+    except (TypeError, ValueError):
+        return value
