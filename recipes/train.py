@@ -155,7 +155,7 @@ def train(cfg: DictConfig) -> dict:
         if not torch.isfinite(total):
             path = checkpoint()
             raise TrainingDiverged(
-                f"non-finite loss at step {collector.frames} ({', '.join(f'{n}={float(losses[n])}' for n in names)}); "
+                f"non-finite loss at step {collector.frames} ({', '.join(f'{n}={float(losses[n].detach())}' for n in names)}); "
                 f"the last good state is checkpointed in {path}. Lower the learning rates or check the inputs."
             )
         agent.optimizer.zero_grad()

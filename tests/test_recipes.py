@@ -1,0 +1,170 @@
+"""The training recipe: smoke runs of every task x algorithm, resume equivalence, kill -9, config errors, NaN stop."""
+from __future__ import annotations
+
+import csv
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import torch
+from hydra import compose, initialize_config_dir
+
+RECIPES = Path(__file__).resolve().parents[1] / "recipes"
+sys.path.insert(0, str(RECIPES))
+
+import train  # noqa: E402
+import train_utils  # noqa: E402
+from train_utils import ALGOS, ConfigError  # noqa: E402
+
+from torchrl_reset_envs import TASKS  # noqa: E402
+
+TINY = [
+    "hidden_sizes=[16,16]", "heat_up=40", "task.forward_horizon=20", "forward.batch_size=16", "reset.batch_size=16",
+    "forward.buffer_size=2000", "reset.buffer_size=2000", "eval_every=100", "log_every=50", "checkpoint_every=100",
+    "progress_bar=false",
+]
+
+
+def config(tmp_path, *overrides):
+    with initialize_config_dir(config_dir=str(RECIPES / "conf"), version_base="1.3"):
+        return compose(config_name="config", overrides=[*TINY, f"run_dir={tmp_path}", *overrides])
+
+
+def rows(path):
+    with open(path, newline="") as f:
+        return list(csv.DictReader(f))
+
+
+@pytest.mark.parametrize("algo", ALGOS)
+@pytest.mark.parametrize("task", list(TASKS))
+def test_every_task_and_algorithm_trains_for_a_few_hundred_steps(tmp_path, task, algo):
+    summary = train.train(config(tmp_path, f"task={task}", f"algo={algo}", "total_steps=200"))
+    assert summary["steps"] == 200 and summary["finished"]
+    saved = json.loads((tmp_path / "summary.json").read_text())
+    assert saved["reset_episodes"] == saved["successful_resets"] + saved["manual_resets"]
+    assert 0.0 <= saved["forward_share"] <= 1.0 and saved["evaluations"] == 2
+    assert [int(r["frames"]) for r in rows(tmp_path / "progress.csv")] == [50, 100, 150, 200]
+    progress = rows(tmp_path / "progress.csv")[-1]
+    assert int(progress["forward_steps"]) + int(progress["reset_steps"]) == 200
+    # updates ran for an agent that passed its 40-step heat-up
+    for agent in ("forward", "reset"):
+        if int(progress[f"{agent}_steps"]) > 41:
+            assert progress[f"loss_{agent}_critic"] not in ("", "nan")
+    assert (tmp_path / "checkpoints" / "latest").read_text() == "step_0000000200"
+    assert (tmp_path / "config.yaml").exists() and any((tmp_path / "logs").rglob("*.csv"))
+
+
+@pytest.mark.parametrize("algo", ["ours", "lnt"])
+def test_a_resumed_run_reproduces_the_uninterrupted_run(tmp_path, algo):
+    common = ["task=peg_insertion_remove", f"algo={algo}"]
+    whole = train.train(config(tmp_path / "whole", *common, "total_steps=400"))
+    train.train(config(tmp_path / "split", *common, "total_steps=200"))
+    resumed = train.train(config(tmp_path / "split", *common, "total_steps=400", "resume=true"))
+    drop = {"steps_per_second"}
+    a = [{k: v for k, v in r.items() if k not in drop} for r in rows(tmp_path / "whole" / "progress.csv")]
+    b = [{k: v for k, v in r.items() if k not in drop} for r in rows(tmp_path / "split" / "progress.csv")]
+    assert a == b and len(a) == 8  # counters, evaluation returns and the last losses, row by row
+    same = ("manual_resets", "forward_share", "reset_success_rate", "average_return", "triggered_resets")
+    assert {k: whole[k] for k in same} == {k: resumed[k] for k in same}
+    assert rows(tmp_path / "whole" / "eval.csv") == rows(tmp_path / "split" / "eval.csv")
+
+
+def test_kill_9_loses_at_most_the_steps_since_the_last_checkpoint(tmp_path):
+    run_dir = tmp_path / "run"
+    args = [sys.executable, str(RECIPES / "train.py"), *TINY, "task=cliff_cheetah", "algo=ours", "total_steps=100000",
+            f"run_dir={run_dir}", "checkpoint_every=100"]
+    proc = subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env={**os.environ, "RL_WARNINGS": "0"})
+    latest = run_dir / "checkpoints" / "latest"
+    deadline = time.time() + 240
+    while time.time() < deadline and proc.poll() is None:
+        if latest.exists() and latest.read_text() >= "step_0000000300":
+            break
+        time.sleep(0.2)
+    assert proc.poll() is None, proc.stderr.read().decode()[-2000:]
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    saved = int(json.loads((run_dir / "checkpoints" / latest.read_text() / "meta.json").read_text())["frames"])
+    assert saved >= 300
+    logged = [int(r["frames"]) for r in rows(run_dir / "progress.csv")]
+    summary = train.train(config(run_dir, "task=cliff_cheetah", "algo=ours", f"total_steps={saved + 100}", "resume=true"))
+    assert summary["steps"] == saved + 100
+    resumed = [int(r["frames"]) for r in rows(run_dir / "progress.csv")]
+    # rows logged after the checkpoint by the killed process are dropped, then the run continues
+    assert resumed == [f for f in logged if f <= saved] + [saved + 50, saved + 100]
+
+
+def test_a_crash_while_checkpointing_keeps_the_previous_checkpoint(tmp_path):
+    checkpoints = train_utils.Checkpoints(tmp_path)
+    checkpoints.save(100, lambda folder: (folder / "state.pt").write_text("first"), {"frames": 100})
+
+    def crash(folder):
+        (folder / "state.pt").write_text("half")
+        raise OSError("disk full")
+
+    with pytest.raises(OSError):
+        checkpoints.save(200, crash, {"frames": 200})
+    latest = checkpoints.latest()
+    assert latest.name == "step_0000000100" and (latest / "state.pt").read_text() == "first"
+
+
+@pytest.mark.parametrize(
+    "overrides, message",
+    [
+        (["task.p_thresh=1.5"], r"p_thresh must lie in \(0, 1\)"),
+        (["task.p_thresh=0"], r"p_thresh must lie in \(0, 1\)"),
+        (["reset.max_steps=10"], r"H_r = 10\) must be >= H_f = 20"),
+        (["task.name=cliff_chetah"], "unknown task 'cliff_chetah'"),
+        (["algo.name=sac"], "unknown algorithm 'sac'"),
+        (["resume=true"], "no complete checkpoint"),
+        (["total_steps=0"], "total_steps must be a positive integer"),
+    ],
+)
+def test_bad_configs_fail_before_training(tmp_path, overrides, message):
+    with pytest.raises(ConfigError, match=message):
+        train.train(config(tmp_path, "task=peg_insertion_insert", *overrides))
+    assert not (tmp_path / "progress.csv").exists()
+
+
+def test_resume_from_another_tasks_checkpoint_and_rerun_without_resume_fail(tmp_path):
+    train.train(config(tmp_path, "task=peg_insertion_insert", "total_steps=100"))
+    with pytest.raises(ConfigError, match="from task 'peg_insertion_insert'"):
+        train.train(config(tmp_path, "task=ball_in_cup_catch", "total_steps=200", "resume=true"))
+    with pytest.raises(ConfigError, match="pass resume=true"):
+        train.train(config(tmp_path, "task=peg_insertion_insert", "total_steps=200"))
+
+
+def test_unknown_config_group_option_is_rejected_by_hydra(tmp_path):
+    from hydra.errors import ConfigCompositionException
+
+    with pytest.raises(ConfigCompositionException, match="nope"):
+        config(tmp_path, "task=nope")
+
+
+def test_a_nan_loss_stops_the_run_with_a_checkpoint_of_the_last_good_state(tmp_path, monkeypatch):
+    make_buffers = train_utils.make_buffers
+
+    def poisoned(cfg):
+        forward_rb, reset_rb = make_buffers(cfg)
+        sample = forward_rb.sample
+
+        def nan_rewards(*args, **kwargs):
+            batch = sample(*args, **kwargs)
+            batch.set(("next", "reward"), torch.full_like(batch.get(("next", "reward")), float("nan")))
+            return batch
+
+        forward_rb.sample = nan_rewards
+        return forward_rb, reset_rb
+
+    monkeypatch.setattr(train, "make_buffers", poisoned)
+    with pytest.raises(train.TrainingDiverged, match="non-finite loss at step"):
+        train.train(config(tmp_path, "task=peg_insertion_insert", "total_steps=300"))
+    latest = train_utils.Checkpoints(tmp_path / "checkpoints").latest()
+    state = torch.load(latest / "state.pt", weights_only=False)
+    params = [v for v in state["forward_loss"].values() if torch.is_tensor(v) and v.is_floating_point()]
+    assert params and all(torch.isfinite(p).all() for p in params)  # no update was applied with the NaN loss
+    assert state["collector"]["counters"]["forward_steps"] == 41  # the first update after the 40-step heat-up
