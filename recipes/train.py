@@ -246,6 +246,10 @@ def train(cfg: DictConfig) -> dict:
     (run_dir / "summary.json").write_text(json.dumps(summary, indent=2, default=_json_default))
     collector.shutdown()
     eval_env.close()
+    for logger in loggers:
+        finish = getattr(getattr(logger, "experiment", None), "finish", None)
+        if callable(finish):  # wandb: close the run so its files are complete
+            finish()
     return summary
 
 

@@ -168,3 +168,11 @@ def test_a_nan_loss_stops_the_run_with_a_checkpoint_of_the_last_good_state(tmp_p
     params = [v for v in state["forward_loss"].values() if torch.is_tensor(v) and v.is_floating_point()]
     assert params and all(torch.isfinite(p).all() for p in params)  # no update was applied with the NaN loss
     assert state["collector"]["counters"]["forward_steps"] == 41  # the first update after the 40-step heat-up
+
+
+def test_wandb_logging_is_offline_by_default_and_needs_no_account(tmp_path, monkeypatch):
+    monkeypatch.setenv("WANDB_SILENT", "true")
+    monkeypatch.delenv("WANDB_API_KEY", raising=False)
+    train.train(config(tmp_path, "task=peg_insertion_insert", "total_steps=100", "logger.wandb=true"))
+    runs = list((tmp_path / "wandb").rglob("offline-run-*"))
+    assert len(runs) == 1 and list(runs[0].glob("*.wandb"))

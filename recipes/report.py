@@ -1,0 +1,280 @@
+"""Turn training runs into the paper's Table 1 and Figures 3, 4 and 5.
+
+    python recipes/report.py runs/                      # every run under runs/
+    python recipes/report.py runs/cliff_cheetah --out report/
+
+Reads every folder holding a ``summary.json`` written by ``train.py`` (any mix of tasks, algorithms,
+seeds and p_thresh values) and writes into ``--out`` (default ``<first folder>/report``):
+
+- ``table1.md``: per task and algorithm, the mean and standard deviation over seeds of the average
+  forward return, manual resets, forward share and reset success rate, beside the paper's numbers;
+- ``fig3_<task>.png``: evaluation forward return and cumulative manual resets against steps;
+- ``fig4_<task>_<algo>.png``: the same four metrics against p_thresh (when runs differ in p_thresh);
+- ``fig5_<task>_<algo>.png``: the curriculum, the state just before each triggered reset against steps.
+"""
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import math
+from collections import defaultdict
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+#: The paper's Table 1 (1.5M steps, mean of 5 seeds): return, manual resets, forward share, success rate.
+PAPER_TABLE1 = {
+    ("ball_in_cup_catch", "lnt"): (10.38, 276, 0.857, 0.993),
+    ("ball_in_cup_catch", "ours"): (19.51, 331, 0.797, 0.968),
+    ("ball_in_cup_catch", "lnt_sparse"): (5.48, 358, 0.890, 0.975),
+    ("peg_insertion_insert", "lnt"): (30.50, 251, 0.717, 0.985),
+    ("peg_insertion_insert", "ours"): (29.20, 343, 0.663, 0.966),
+    ("peg_insertion_insert", "lnt_sparse"): (1.60, 7175, 0.026, 0.744),
+    ("cliff_cheetah", "lnt"): (4.77, 835, 0.150, 0.857),
+    ("cliff_cheetah", "ours"): (1.96, 371, 0.314, 0.948),
+    ("cliff_cheetah", "lnt_sparse"): (2.96, 765, 0.154, 0.803),
+    ("ball_in_cup_throw", "lnt"): (33.28, 359, 0.754, 0.991),
+    ("ball_in_cup_throw", "ours"): (17.75, 1231, 0.479, 0.949),
+    ("ball_in_cup_throw", "lnt_sparse"): (31.70, 1527, 0.525, 0.878),
+    ("peg_insertion_remove", "lnt"): (44.57, 1714, 0.489, 0.931),
+    ("peg_insertion_remove", "ours"): (30.27, 2525, 0.326, 0.712),
+    ("peg_insertion_remove", "lnt_sparse"): (0.46, 7407, 0.006, 0.353),
+    ("cliff_walker", "lnt"): (6.65, 1195, 0.057, 0.957),
+    ("cliff_walker", "ours"): (6.29, 1305, 0.042, 0.687),
+    ("cliff_walker", "lnt_sparse"): (0.00, 1415, 0.001, 0.949),
+}
+TASK_TITLES = {
+    "ball_in_cup_catch": "ball-in-cup (catch)", "peg_insertion_insert": "peg-insertion (insert)",
+    "cliff_cheetah": "cliff-cheetah", "ball_in_cup_throw": "ball-in-cup (throw)",
+    "peg_insertion_remove": "peg-insertion (remove)", "cliff_walker": "cliff-walker",
+}
+ALGO_TITLES = {"ours": "ours", "lnt": "LNT", "lnt_sparse": "LNT-sparse"}
+METRICS = ("average_return", "manual_resets", "forward_share", "reset_success_rate")
+COLORS = {"ours": "tab:red", "lnt": "tab:blue", "lnt_sparse": "tab:green"}
+
+
+class Run:
+    """One run folder: its summary, config and logged tables."""
+
+    def __init__(self, folder: Path):
+        self.folder = folder
+        self.summary = json.loads((folder / "summary.json").read_text())
+        for key in ("task", "algo", "seed", *METRICS):
+            if key not in self.summary:
+                raise ValueError(f"{folder / 'summary.json'} has no {key!r}: not written by train.py?")
+        self.task, self.algo = self.summary["task"], self.summary["algo"]
+        self.p_thresh = self.summary.get("p_thresh")
+
+    def table(self, name: str) -> dict[str, np.ndarray]:
+        path = self.folder / name
+        if not path.exists():
+            return {}
+        with open(path, newline="") as f:
+            rows = list(csv.DictReader(f))
+        if not rows:
+            return {}
+        return {key: np.array([_float(row[key]) for row in rows]) for key in rows[0] if key != "observation"}
+
+
+def _float(value: str) -> float:
+    try:
+        return float(value)
+    except ValueError:
+        return {"True": 1.0, "False": 0.0}.get(value, math.nan)
+
+
+def find_runs(paths: list[Path]) -> list[Run]:
+    folders = sorted({p.parent for path in paths for p in ([path] if path.is_file() else path.rglob("summary.json"))})
+    if not folders:
+        raise SystemExit(f"no summary.json under {', '.join(map(str, paths))}: nothing to report.")
+    return [Run(folder) for folder in folders]
+
+
+def _mean_std(values: list[float]) -> tuple[float, float]:
+    values = [v for v in values if v is not None and not (isinstance(v, float) and math.isnan(v))]
+    if not values:
+        return math.nan, math.nan
+    return float(np.mean(values)), float(np.std(values)) if len(values) > 1 else 0.0
+
+
+def _cell(mean: float, std: float, kind: str) -> str:
+    if math.isnan(mean):
+        return "n/a"
+    if kind == "share":
+        return f"{100 * mean:.1f}% ± {100 * std:.1f}"
+    if kind == "count":
+        return f"{mean:.0f} ± {std:.0f}"
+    return f"{mean:.2f} ± {std:.2f}"
+
+
+def _paper(value, kind: str) -> str:
+    return f"{100 * value:.1f}%" if kind == "share" else (f"{value:.0f}" if kind == "count" else f"{value:.2f}")
+
+
+def table1(runs: list[Run]) -> str:
+    """Markdown table: one row per (task, algo, p_thresh) group, mean ± std over its seeds, paper beside."""
+    groups = defaultdict(list)
+    for run in runs:
+        groups[(run.task, run.algo, run.p_thresh)].append(run)
+    kinds = ("return", "count", "share", "share")
+    lines = [
+        "| task | algo | p_thresh | seeds | steps | avg return | manual resets | forward share | success rate |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    order = list(TASK_TITLES)
+    for (task, algo, p_thresh), members in sorted(
+        groups.items(), key=lambda kv: (order.index(kv[0][0]) if kv[0][0] in order else 99, kv[0][1], kv[0][2] or 0)
+    ):
+        paper = PAPER_TABLE1.get((task, algo))
+        cells = []
+        for metric, kind, index in zip(METRICS, kinds, range(4)):
+            mean, std = _mean_std([r.summary[metric] for r in members])
+            cell = _cell(mean, std, kind)
+            if paper is not None:
+                cell += f" (paper {_paper(paper[index], kind)})"
+            cells.append(cell)
+        steps = sorted({r.summary.get("steps") for r in members})
+        lines.append(
+            f"| {TASK_TITLES.get(task, task)} | {ALGO_TITLES.get(algo, algo)} | {p_thresh} | {len(members)} | "
+            f"{'/'.join(map(str, steps))} | " + " | ".join(cells) + " |"
+        )
+    return "\n".join(lines) + "\n\nMean ± standard deviation over seeds; the paper's numbers are 1.5M-step means of 5 seeds.\n"
+
+
+def _curves(members: list[Run], table: str, column: str):
+    """Per-run (steps, values) curves of ``column`` from ``table``."""
+    out = []
+    for run in members:
+        data = run.table(table)
+        if column in data and "frames" in data:
+            out.append((data["frames"], data[column]))
+    return out
+
+
+def _plot_band(ax, curves, color, label):
+    if not curves:
+        return
+    grid = np.unique(np.concatenate([x for x, _ in curves]))
+    stacked = np.array([np.interp(grid, x, y, left=np.nan, right=np.nan) for x, y in curves])
+    with np.errstate(all="ignore"):
+        mean = np.nanmean(stacked, axis=0)
+    ax.plot(grid, mean, color=color, label=f"{label} (n={len(curves)})")
+    if len(curves) > 1:
+        ax.fill_between(grid, np.nanmin(stacked, axis=0), np.nanmax(stacked, axis=0), color=color, alpha=0.2)
+
+
+def figure3(runs: list[Run], out: Path) -> list[Path]:
+    written = []
+    by_task = defaultdict(lambda: defaultdict(list))
+    for run in runs:
+        by_task[run.task][run.algo].append(run)
+    for task, algos in by_task.items():
+        fig, (ax_ret, ax_man) = plt.subplots(1, 2, figsize=(10, 3.8))
+        for algo, members in sorted(algos.items()):
+            color = COLORS.get(algo)
+            _plot_band(ax_ret, _curves(members, "eval.csv", "forward_return"), color, ALGO_TITLES.get(algo, algo))
+            _plot_band(ax_man, _curves(members, "progress.csv", "manual_resets"), color, ALGO_TITLES.get(algo, algo))
+        ax_ret.set(title=f"{TASK_TITLES.get(task, task)}: forward return", xlabel="steps (forward + reset)",
+                   ylabel="discounted return (evaluation)")
+        ax_man.set(title="cumulative manual resets", xlabel="steps (forward + reset)", ylabel="manual resets")
+        for ax in (ax_ret, ax_man):
+            ax.grid(alpha=0.3)
+            ax.legend(fontsize=8)
+        fig.tight_layout()
+        path = out / f"fig3_{task}.png"
+        fig.savefig(path, dpi=110)
+        plt.close(fig)
+        written.append(path)
+    return written
+
+
+def figure4(runs: list[Run], out: Path) -> list[Path]:
+    written = []
+    groups = defaultdict(list)
+    for run in runs:
+        groups[(run.task, run.algo)].append(run)
+    for (task, algo), members in groups.items():
+        thresholds = sorted({r.p_thresh for r in members if r.p_thresh is not None})
+        if len(thresholds) < 2:
+            continue
+        fig, axes = plt.subplots(1, 4, figsize=(14, 3.4))
+        for ax, metric in zip(axes, METRICS):
+            stats = [_mean_std([r.summary[metric] for r in members if r.p_thresh == p]) for p in thresholds]
+            ax.errorbar(thresholds, [m for m, _ in stats], yerr=[s for _, s in stats], marker="o", capsize=3,
+                        color=COLORS.get(algo))
+            ax.set(xlabel="p_thresh", title=metric.replace("_", " "))
+            ax.grid(alpha=0.3)
+        fig.suptitle(f"{TASK_TITLES.get(task, task)}, {ALGO_TITLES.get(algo, algo)}: p_thresh sweep")
+        fig.tight_layout()
+        path = out / f"fig4_{task}_{algo}.png"
+        fig.savefig(path, dpi=110)
+        plt.close(fig)
+        written.append(path)
+    return written
+
+
+def figure5(runs: list[Run], out: Path) -> list[Path]:
+    written = []
+    groups = defaultdict(list)
+    for run in runs:
+        groups[(run.task, run.algo)].append(run)
+    for (task, algo), members in groups.items():
+        points = [run.table("triggers.csv") for run in members]
+        points = [p for p in points if "frames" in p]
+        if not points:
+            continue
+        label = _curriculum_label(members[0])
+        fig, ax = plt.subplots(figsize=(6, 3.8))
+        for i, p in enumerate(points):
+            ax.scatter(p["frames"], p["value"], s=6, alpha=0.5, label=f"seed {members[i].summary['seed']}")
+        ax.set(title=f"{TASK_TITLES.get(task, task)}, {ALGO_TITLES.get(algo, algo)}: state before each trigger",
+               xlabel="steps (forward + reset)", ylabel=label)
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8, markerscale=3)
+        fig.tight_layout()
+        path = out / f"fig5_{task}_{algo}.png"
+        fig.savefig(path, dpi=110)
+        plt.close(fig)
+        written.append(path)
+    return written
+
+
+def _curriculum_label(run: Run) -> str:
+    config = run.folder / "config.yaml"
+    if config.exists():
+        from omegaconf import OmegaConf
+
+        label = OmegaConf.select(OmegaConf.load(config), "task.curriculum.label")
+        if label:
+            return str(label)
+    return "observation entry before the trigger"
+
+
+def report(paths: list[Path], out: Path | None = None) -> dict[str, list[Path]]:
+    runs = find_runs(paths)
+    out = Path(out) if out is not None else (paths[0] if paths[0].is_dir() else paths[0].parent) / "report"
+    out.mkdir(parents=True, exist_ok=True)
+    table_path = out / "table1.md"
+    table_path.write_text(table1(runs))
+    return {"table": [table_path], "fig3": figure3(runs, out), "fig4": figure4(runs, out), "fig5": figure5(runs, out)}
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("paths", nargs="+", type=Path, help="run folders, or folders holding run folders")
+    parser.add_argument("--out", type=Path, default=None, help="where to write (default: <first path>/report)")
+    args = parser.parse_args(argv)
+    written = report(args.paths, args.out)
+    print(Path(written["table"][0]).read_text())
+    for kind in ("fig3", "fig4", "fig5"):
+        for path in written[kind]:
+            print(f"wrote {path}")
+
+
+if __name__ == "__main__":
+    main()

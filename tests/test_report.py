@@ -1,0 +1,67 @@
+"""report.py on small fabricated run folders: Table 1 numbers worked out by hand, and the figures."""
+from __future__ import annotations
+
+import csv
+import json
+import sys
+from pathlib import Path
+
+import matplotlib.image as mpimg
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "recipes"))
+
+import report  # noqa: E402
+
+
+def fabricate(root: Path, task, algo, seed, p_thresh, avg_return, manual, share, success, steps=1000):
+    folder = root / task / algo / f"p{p_thresh}" / f"seed{seed}"
+    folder.mkdir(parents=True)
+    summary = {"task": task, "algo": algo, "seed": seed, "p_thresh": p_thresh, "steps": steps,
+               "average_return": avg_return, "manual_resets": manual, "forward_share": share, "reset_success_rate": success}
+    (folder / "summary.json").write_text(json.dumps(summary))
+    tables = {
+        "progress.csv": (["frames", "manual_resets"], [(f, manual * f // steps) for f in range(250, steps + 1, 250)]),
+        "eval.csv": (["frames", "forward_return"], [(f, avg_return * f / steps) for f in range(500, steps + 1, 500)]),
+        "triggers.csv": (["frames", "steps", "value", "observation"], [(f, 10, 0.01 * f, "0 0") for f in range(100, steps, 100)]),
+    }
+    for name, (header, rows) in tables.items():
+        with open(folder / name, "w", newline="") as f:
+            writer = csv.writer(f)
+            writer.writerow(header)
+            writer.writerows(rows)
+    return folder
+
+
+def test_table1_and_figures_from_fabricated_runs(tmp_path):
+    runs = tmp_path / "runs"
+    fabricate(runs, "cliff_cheetah", "ours", 0, 0.05, 2.0, 10, 0.3, 0.9)
+    fabricate(runs, "cliff_cheetah", "ours", 1, 0.05, 4.0, 30, 0.5, 1.0)
+    fabricate(runs, "cliff_cheetah", "ours", 0, 0.2, 1.0, 5, 0.1, 0.5)
+    fabricate(runs, "cliff_cheetah", "lnt", 0, 0.05, 5.0, 100, 0.2, 0.8)
+    written = report.report([runs], tmp_path / "out")
+    table = (tmp_path / "out" / "table1.md").read_text()
+    # seeds 0 and 1: returns 2 and 4 -> 3.00 ± 1.00; manual 10, 30 -> 20 ± 10; shares 0.3, 0.5 -> 40.0% ± 10.0;
+    # success 0.9, 1.0 -> 95.0% ± 5.0 (population standard deviation); the paper's cliff-cheetah row beside
+    assert ("| cliff-cheetah | ours | 0.05 | 2 | 1000 | 3.00 ± 1.00 (paper 1.96) | 20 ± 10 (paper 371) | "
+            "40.0% ± 10.0 (paper 31.4%) | 95.0% ± 5.0 (paper 94.8%) |") in table
+    assert "| cliff-cheetah | LNT | 0.05 | 1 | 1000 | 5.00 ± 0.00 (paper 4.77) |" in table
+    assert "| cliff-cheetah | ours | 0.2 | 1 |" in table
+    names = {kind: [p.name for p in paths] for kind, paths in written.items()}
+    assert names["fig3"] == ["fig3_cliff_cheetah.png"]
+    assert names["fig4"] == ["fig4_cliff_cheetah_ours.png"]  # only ours has two p_thresh values
+    assert sorted(names["fig5"]) == ["fig5_cliff_cheetah_lnt.png", "fig5_cliff_cheetah_ours.png"]
+    for paths in written.values():
+        for path in paths:
+            if path.suffix == ".png":
+                assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+                assert mpimg.imread(path).std() > 0.01  # something was drawn
+
+
+def test_report_without_runs_and_with_a_foreign_summary(tmp_path):
+    with pytest.raises(SystemExit, match="no summary.json"):
+        report.report([tmp_path])
+    (tmp_path / "x").mkdir()
+    (tmp_path / "x" / "summary.json").write_text(json.dumps({"task": "t"}))
+    with pytest.raises(ValueError, match="not written by train.py"):
+        report.report([tmp_path])
