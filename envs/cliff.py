@@ -42,7 +42,31 @@ def add_cliff_terrain(spec: mujoco.MjSpec, *, edge: float, far_wall: float, back
     box("far_wall", far_wall, far_wall + 0.2, -depth - 0.5, 1.5, _WALL_RGBA)
 
 
-class CliffCheetahEnv(MujocoResetEnv):
+class _CliffEnv(MujocoResetEnv):
+    """What the two cliff tasks share: the terrain, the task constants and the x velocity."""
+
+    frame_skip = 5
+    forward_horizon = 500
+    p_thresh = 0.05
+    has_irrecoverable = True
+    default_camera = "track"
+    model_file: str
+    edge: float
+    far_wall: float
+
+    def _build_spec(self) -> mujoco.MjSpec:
+        spec = mujoco.MjSpec.from_file(asset_path("gymnasium", self.model_file))
+        add_cliff_terrain(spec, edge=self.edge, far_wall=self.far_wall)
+        return spec
+
+    def _before_step(self) -> float:
+        return float(self.data.qpos[0])
+
+    def _velocity(self, x_before: float) -> float:
+        return (float(self.data.qpos[0]) - x_before) / self.dt
+
+
+class CliffCheetahEnv(_CliffEnv):
     """cliff-cheetah: the half-cheetah runs forward on a floor that ends in a ditch at x = 14.
 
     Model: gymnasium's ``half_cheetah.xml`` (timestep 0.01 s, frame skip 5, so 0.05 s per step) with
@@ -75,16 +99,12 @@ class CliffCheetahEnv(MujocoResetEnv):
         ((18,), ['irrecoverable', 'reset_reward', 'reset_success'])
     """
 
-    frame_skip = 5
-    forward_horizon = 500
-    p_thresh = 0.05
-    has_irrecoverable = True
-    default_camera = "track"
+    model_file = "half_cheetah.xml"
     edge = 14.0
+    far_wall = 16.0
 
     def _build_spec(self) -> mujoco.MjSpec:
-        spec = mujoco.MjSpec.from_file(asset_path("gymnasium", "half_cheetah.xml"))
-        add_cliff_terrain(spec, edge=self.edge, far_wall=16.0)
+        spec = super()._build_spec()
         # The model scales its masses to 14 kg through the deprecated compiler attribute; do the same
         # scaling explicitly after compilation instead.
         self._total_mass = float(spec.compiler.settotalmass)
@@ -104,11 +124,8 @@ class CliffCheetahEnv(MujocoResetEnv):
     def _observation(self) -> np.ndarray:
         return np.concatenate([self.data.qpos, self.data.qvel])
 
-    def _before_step(self) -> float:
-        return float(self.data.qpos[0])
-
     def _forward_reward(self, action, before):
-        velocity = (float(self.data.qpos[0]) - before) / self.dt
+        velocity = self._velocity(before)
         return tolerance(velocity, 9.0, 11.0, 7.0), {"velocity": velocity}
 
     def _status(self, action):
@@ -118,7 +135,7 @@ class CliffCheetahEnv(MujocoResetEnv):
         return reset_success, float(np.clip(reset_reward, 0.0, 1.0)), (x > self.edge and z < -1.0)
 
 
-class CliffWalkerEnv(MujocoResetEnv):
+class CliffWalkerEnv(_CliffEnv):
     """cliff-walker: the 2-D walker walks forward on a floor that ends in a ditch at x = 6.
 
     Model: gymnasium's ``walker2d_v5.xml`` (RK4, timestep 0.002 s, frame skip 5, so 0.01 s per step)
@@ -152,17 +169,9 @@ class CliffWalkerEnv(MujocoResetEnv):
         ((18,), True)
     """
 
-    frame_skip = 5
-    forward_horizon = 500
-    p_thresh = 0.05
-    has_irrecoverable = True
-    default_camera = "track"
+    model_file = "walker2d_v5.xml"
     edge = 6.0
-
-    def _build_spec(self) -> mujoco.MjSpec:
-        spec = mujoco.MjSpec.from_file(asset_path("gymnasium", "walker2d_v5.xml"))
-        add_cliff_terrain(spec, edge=self.edge, far_wall=8.0)
-        return spec
+    far_wall = 8.0
 
     def _reset_state(self) -> None:
         rng = self.np_random
@@ -172,16 +181,13 @@ class CliffWalkerEnv(MujocoResetEnv):
     def _observation(self) -> np.ndarray:
         return np.concatenate([self.data.qpos, np.clip(self.data.qvel, -10.0, 10.0)])
 
-    def _before_step(self) -> float:
-        return float(self.data.qpos[0])
-
     def _stand_upright(self) -> tuple[float, float]:
         h, pitch = float(self.data.qpos[1]), float(self.data.qpos[2])
         stand = float(np.clip(0.25 * h + 0.25 * (h > 1.2) + 0.5 * (1.0 - (h < 0.7)), 0.0, 1.0))
         return stand, tolerance(pitch, -0.75, 0.75, 0.5)
 
     def _forward_reward(self, action, before):
-        velocity = (float(self.data.qpos[0]) - before) / self.dt
+        velocity = self._velocity(before)
         run = float(np.clip(velocity / 2.0, 0.0, 1.0))
         stand, upright = self._stand_upright()
         return run * stand * upright, {"velocity": velocity, "run": run, "stand": stand, "upright": upright}

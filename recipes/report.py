@@ -118,9 +118,7 @@ def _paper(value, kind: str) -> str:
 
 def table1(runs: list[Run]) -> str:
     """Markdown table: one row per (task, algo, p_thresh) group, mean ± std over its seeds, paper beside."""
-    groups = defaultdict(list)
-    for run in runs:
-        groups[(run.task, run.algo, run.p_thresh)].append(run)
+    groups = _by(runs, "task", "algo", "p_thresh")
     kinds = ("return", "count", "share", "share")
     lines = [
         "| task | algo | p_thresh | seeds | steps | avg return | manual resets | forward share | success rate |",
@@ -168,14 +166,25 @@ def _plot_band(ax, curves, color, label):
         ax.fill_between(grid, np.nanmin(stacked, axis=0), np.nanmax(stacked, axis=0), color=color, alpha=0.2)
 
 
+def _by(runs: list[Run], *attributes: str) -> dict[tuple, list[Run]]:
+    groups = defaultdict(list)
+    for run in runs:
+        groups[tuple(getattr(run, a) for a in attributes)].append(run)
+    return groups
+
+
+def _save(fig, path: Path, written: list[Path]) -> None:
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    written.append(path)
+
+
 def figure3(runs: list[Run], out: Path) -> list[Path]:
     written = []
-    by_task = defaultdict(lambda: defaultdict(list))
-    for run in runs:
-        by_task[run.task][run.algo].append(run)
-    for task, algos in by_task.items():
+    for (task,), task_runs in _by(runs, "task").items():
         fig, (ax_ret, ax_man) = plt.subplots(1, 2, figsize=(10, 3.8))
-        for algo, members in sorted(algos.items()):
+        for (algo,), members in sorted(_by(task_runs, "algo").items()):
             color = COLORS.get(algo)
             _plot_band(ax_ret, _curves(members, "eval.csv", "forward_return"), color, ALGO_TITLES.get(algo, algo))
             _plot_band(ax_man, _curves(members, "progress.csv", "manual_resets"), color, ALGO_TITLES.get(algo, algo))
@@ -185,20 +194,13 @@ def figure3(runs: list[Run], out: Path) -> list[Path]:
         for ax in (ax_ret, ax_man):
             ax.grid(alpha=0.3)
             ax.legend(fontsize=8)
-        fig.tight_layout()
-        path = out / f"fig3_{task}.png"
-        fig.savefig(path, dpi=110)
-        plt.close(fig)
-        written.append(path)
+        _save(fig, out / f"fig3_{task}.png", written)
     return written
 
 
 def figure4(runs: list[Run], out: Path) -> list[Path]:
     written = []
-    groups = defaultdict(list)
-    for run in runs:
-        groups[(run.task, run.algo)].append(run)
-    for (task, algo), members in groups.items():
+    for (task, algo), members in _by(runs, "task", "algo").items():
         thresholds = sorted({r.p_thresh for r in members if r.p_thresh is not None})
         if len(thresholds) < 2:
             continue
@@ -210,20 +212,13 @@ def figure4(runs: list[Run], out: Path) -> list[Path]:
             ax.set(xlabel="p_thresh", title=metric.replace("_", " "))
             ax.grid(alpha=0.3)
         fig.suptitle(f"{TASK_TITLES.get(task, task)}, {ALGO_TITLES.get(algo, algo)}: p_thresh sweep")
-        fig.tight_layout()
-        path = out / f"fig4_{task}_{algo}.png"
-        fig.savefig(path, dpi=110)
-        plt.close(fig)
-        written.append(path)
+        _save(fig, out / f"fig4_{task}_{algo}.png", written)
     return written
 
 
 def figure5(runs: list[Run], out: Path) -> list[Path]:
     written = []
-    groups = defaultdict(list)
-    for run in runs:
-        groups[(run.task, run.algo)].append(run)
-    for (task, algo), members in groups.items():
+    for (task, algo), members in _by(runs, "task", "algo").items():
         points = [run.table("triggers.csv") for run in members]
         points = [p for p in points if "frames" in p]
         if not points:
@@ -236,11 +231,7 @@ def figure5(runs: list[Run], out: Path) -> list[Path]:
                xlabel="steps (forward + reset)", ylabel=label)
         ax.grid(alpha=0.3)
         ax.legend(fontsize=8, markerscale=3)
-        fig.tight_layout()
-        path = out / f"fig5_{task}_{algo}.png"
-        fig.savefig(path, dpi=110)
-        plt.close(fig)
-        written.append(path)
+        _save(fig, out / f"fig5_{task}_{algo}.png", written)
     return written
 
 
