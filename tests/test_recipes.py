@@ -176,3 +176,26 @@ def test_wandb_logging_is_offline_by_default_and_needs_no_account(tmp_path, monk
     train.train(config(tmp_path, "task=peg_insertion_insert", "total_steps=100", "logger.wandb=true"))
     runs = list((tmp_path / "wandb").rglob("offline-run-*"))
     assert len(runs) == 1 and list(runs[0].glob("*.wandb"))
+
+
+def test_lnt_reset_loss_gives_each_member_its_own_td_target(tmp_path):
+    from tensordict import TensorDict
+
+    cfg = config(tmp_path, "task=peg_insertion_insert", "algo=lnt")
+    spec = train.make_env("peg_insertion_insert").action_spec
+    agent = train_utils.make_reset_agent(cfg, 14, spec)
+    k, b = cfg.algo.num_members, 6
+    td = TensorDict({
+        "observation": torch.randn(b, 14), "action": torch.rand(b, 7) * 4 - 2,
+        "next": {"observation": torch.randn(b, 14), "reset_reward": torch.rand(b, 1), "reset_success": torch.rand(b, 1) > 0.5,
+                 "done": torch.zeros(b, 1, dtype=torch.bool), "terminated": torch.zeros(b, 1, dtype=torch.bool)},
+    }, [b])
+    for reward_kind, reward in (("shaped", td["next", "reset_reward"]), ("sparse", td["next", "reset_success"].float())):
+        cfg.algo.reset_reward = reward_kind
+        loss = agent.loss(train_utils.lnt_batch(td.clone(), cfg.algo, k))["loss_value"]
+        with torch.no_grad():  # targets start equal to the online networks
+            q_next = agent.model(agent.actor(td["next"].clone()))["state_action_value"]
+            q = agent.model(td.clone())["state_action_value"]
+        assert q.shape == (b, k)
+        expected = ((q - (reward + cfg.gamma * q_next)) ** 2).mean()  # member i against r + gamma Q_i(s', pi(s'))
+        assert float(loss) == pytest.approx(float(expected), rel=1e-5)
