@@ -198,4 +198,4 @@ def test_lnt_reset_loss_gives_each_member_its_own_td_target(tmp_path):
             q = agent.model(td.clone())["state_action_value"]
         assert q.shape == (b, k)
         expected = ((q - (reward + cfg.gamma * q_next)) ** 2).mean()  # member i against r + gamma Q_i(s', pi(s'))
-        assert float(loss) == pytest.approx(float(expected), rel=1e-5)
+        assert float(loss.detach()) == pytest.approx(float(expected), rel=1e-5)
