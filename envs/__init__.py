@@ -12,6 +12,8 @@ from .ball_in_cup import BallInCupEnv
 from .chain import ChainEnv
 from .cliff import CliffCheetahEnv, CliffWalkerEnv
 from .peg import PegInsertionEnv
+from .ur3 import UR3Env
+from .ur3_backends import RTDEBackend, SafetyLimits, SimBackend, UR3Backend
 from .tasks import GYM_NAMESPACE, TASKS, TaskSpec, gym_id, make_env, make_gym_env, register_gym_envs, task_spec
 
 register_gym_envs()
@@ -27,6 +29,11 @@ __all__ = [
     "RenderingUnavailableError",
     "TASKS",
     "TaskSpec",
+    "RTDEBackend",
+    "SafetyLimits",
+    "SimBackend",
+    "UR3Backend",
+    "UR3Env",
     "gym_id",
     "make_env",
     "make_gym_env",

@@ -14,6 +14,7 @@ from torchrl.envs.gym_like import default_info_dict_reader
 from .ball_in_cup import BallInCupEnv
 from .cliff import CliffCheetahEnv, CliffWalkerEnv
 from .peg import PegInsertionEnv
+from .ur3 import UR3Env
 
 __all__ = ["TaskSpec", "TASKS", "GYM_NAMESPACE", "gym_id", "make_env", "make_gym_env", "register_gym_envs", "task_spec"]
 
@@ -29,8 +30,9 @@ class TaskSpec:
 
     Attributes:
         name: the task's name in recipes and :func:`make_env` (``"cliff_cheetah"``).
-        gym_name: the gymnasium id without namespace (``"CliffCheetah-v0"``).
-        env_class: the gymnasium environment class.
+        gym_name: the gymnasium id without namespace (``"CliffCheetah-v0"``); None for the UR3 tasks,
+            which are torchrl environments only.
+        env_class: the gymnasium environment class (or, for the UR3 tasks, the torchrl one).
         kwargs: arguments for ``env_class``.
         forward_horizon: H_f, the forward episode length.
         p_thresh: the reset trigger's success-probability threshold.
@@ -39,7 +41,7 @@ class TaskSpec:
     """
 
     name: str
-    gym_name: str
+    gym_name: str | None
     env_class: type
     kwargs: dict[str, Any] = field(default_factory=dict)
     forward_horizon: int = 0
@@ -48,9 +50,9 @@ class TaskSpec:
     reconstructed: bool = False
 
     @property
-    def gym_id(self) -> str:
+    def gym_id(self) -> str | None:
         """The registered id, usable as ``gymnasium.make(f"torchrl_reset_envs:{spec.gym_id}")``."""
-        return f"{GYM_NAMESPACE}/{self.gym_name}"
+        return None if self.gym_name is None else f"{GYM_NAMESPACE}/{self.gym_name}"
 
 
 TASKS: dict[str, TaskSpec] = {
@@ -62,6 +64,8 @@ TASKS: dict[str, TaskSpec] = {
         TaskSpec("peg_insertion_remove", "PegInsertionRemove-v0", PegInsertionEnv, {"forward": "remove"}, 100, 0.1),
         TaskSpec("ball_in_cup_catch", "BallInCupCatch-v0", BallInCupEnv, {"forward": "catch"}, 100, 0.1, reconstructed=True),
         TaskSpec("ball_in_cup_throw", "BallInCupThrow-v0", BallInCupEnv, {"forward": "throw"}, 100, 0.1, reconstructed=True),
+        TaskSpec("ur3_peg", None, UR3Env, {"task": "peg"}, 100, 0.1, reconstructed=True),
+        TaskSpec("ur3_reacher", None, UR3Env, {"task": "reacher"}, 100, 0.1, True, reconstructed=True),
     )
 }
 
@@ -88,7 +92,7 @@ def task_spec(task: str) -> TaskSpec:
     if task in TASKS:
         return TASKS[task]
     for spec in TASKS.values():
-        if task in (spec.gym_name, spec.gym_id, f"torchrl_reset_envs:{spec.gym_id}"):
+        if spec.gym_name is not None and task in (spec.gym_name, spec.gym_id, f"torchrl_reset_envs:{spec.gym_id}"):
             return spec
     close = difflib.get_close_matches(task, list(TASKS), n=3)
     hint = f" Did you mean {' or '.join(map(repr, close))}?" if close else ""
@@ -97,7 +101,10 @@ def task_spec(task: str) -> TaskSpec:
 
 def gym_id(task: str) -> str:
     """The full string for ``gymnasium.make``/``GymEnv`` that needs no prior import."""
-    return f"torchrl_reset_envs:{task_spec(task).gym_id}"
+    spec = task_spec(task)
+    if spec.gym_id is None:
+        raise ValueError(f"{spec.name} is a torchrl environment only (no gymnasium id); use make_env({spec.name!r}).")
+    return f"torchrl_reset_envs:{spec.gym_id}"
 
 
 def register_gym_envs() -> None:
@@ -106,7 +113,7 @@ def register_gym_envs() -> None:
     No ``max_episode_steps``: the envs never end episodes by themselves, the collector does.
     """
     for spec in TASKS.values():
-        if spec.gym_id in gymnasium.registry:
+        if spec.gym_id is None or spec.gym_id in gymnasium.registry:
             continue
         gymnasium.register(
             id=spec.gym_id,
@@ -119,6 +126,8 @@ def register_gym_envs() -> None:
 def make_gym_env(task: str, **kwargs) -> gymnasium.Env:
     """The task's gymnasium environment without gymnasium's wrappers (``kwargs``: ``render_mode``, ``width``...)."""
     spec = task_spec(task)
+    if spec.gym_id is None:
+        raise ValueError(f"{spec.name} is a torchrl environment only (no gymnasium version); use make_env({spec.name!r}).")
     return spec.env_class(**spec.kwargs, **kwargs)
 
 
@@ -142,11 +151,12 @@ def make_env(
     Args:
         task (str): a name from :data:`TASKS` (``"cliff_cheetah"``, ``"cliff_walker"``,
             ``"peg_insertion_insert"``, ``"peg_insertion_remove"``, ``"ball_in_cup_catch"``,
-            ``"ball_in_cup_throw"``) or a gymnasium id.
+            ``"ball_in_cup_throw"``, ``"ur3_peg"``, ``"ur3_reacher"``) or a gymnasium id.
         seed (int, optional): seeds the env's start-state noise.
         device: the tensordicts' device.
         render_mode (str, optional): ``"rgb_array"`` to allow ``env.render()`` (needs an OpenGL backend).
-        **kwargs: passed to the gymnasium class (``width``, ``height``, ``camera``).
+        **kwargs: passed to the gymnasium class (``width``, ``height``, ``camera``), or for the UR3
+            tasks to :class:`~torchrl_reset_envs.UR3Env` (``backend``, ``host``, ``speed_limit``...).
 
     Examples:
         >>> from torchrl.envs.utils import check_env_specs
@@ -159,6 +169,12 @@ def make_env(
         tensor([True])
     """
     spec = task_spec(task)
+    if spec.gym_id is None:  # the UR3 tasks: a torchrl EnvBase with its own flags
+        if render_mode is not None:
+            raise ValueError(f"{spec.name} has no render_mode.")
+        env = TransformedEnv(spec.env_class(**spec.kwargs, **kwargs, device=device), Compose())
+        env.task_spec = spec
+        return env
     gym_env = make_gym_env(spec, render_mode=render_mode, **kwargs)
     base = GymWrapper(gym_env, device=device)
     flag = Categorical(2, shape=(1,), dtype=torch.bool, device=base.device)

@@ -34,6 +34,7 @@ from train_utils import (  # noqa: E402
     Checkpoints,
     ConfigError,
     CsvTable,
+    env_kwargs,
     evaluate,
     lnt_batch,
     make_buffers,
@@ -82,7 +83,7 @@ def train(cfg: DictConfig) -> dict:
     for agent in (forward, reset):
         agent.loss.to(cfg.device)
     env, _ = make_task_env(cfg, reset)
-    eval_env, eval_trigger = make_task_env(cfg, reset)
+    eval_env, eval_trigger = make_task_env(cfg, reset, for_eval=True)
     collector = DualCollector(
         env,
         with_exploration(forward.actor, env.action_spec, cfg),
@@ -255,7 +256,7 @@ def train(cfg: DictConfig) -> dict:
 
 def task_dimensions(cfg: DictConfig):
     """Observation size and action spec of the task (from a throw-away env)."""
-    env = make_env(cfg.task.name)
+    env = make_env(cfg.task.name, **env_kwargs(cfg, for_eval=True))
     out = env.observation_spec["observation"].shape[-1], env.action_spec.clone()
     env.close()
     return out

@@ -54,6 +54,11 @@ def validate(cfg: DictConfig) -> None:
         value = OmegaConf.select(cfg, key)
         if not isinstance(value, int) or value < 1:
             problems.append(f"{key} must be a positive integer, got {value!r}")
+    env = cfg.get("env") or {}
+    if env.get("backend", "sim") == "rtde" and not env.get("host"):
+        problems.append("env.backend=rtde needs env.host=<the controller's address>")
+    if env and not cfg.task.name.startswith("ur3_"):
+        problems.append(f"env.* options ({', '.join(env)}) only apply to the UR3 tasks")
     if int(cfg.heat_up) < 0:
         problems.append(f"heat_up must be >= 0, got {cfg.heat_up}")
     if problems:
@@ -170,8 +175,17 @@ def make_trigger(cfg: DictConfig, reset_agent: Agent) -> ResetTriggerTransform:
     )
 
 
-def make_task_env(cfg: DictConfig, reset_agent: Agent) -> tuple[TransformedEnv, ResetTriggerTransform]:
-    env = make_env(cfg.task.name, device=cfg.device)
+def env_kwargs(cfg: DictConfig, *, for_eval: bool = False) -> dict:
+    """``make_env`` arguments. A real arm cannot be copied: evaluation and probing then use its simulated twin."""
+    env = cfg.get("env")
+    kwargs = {} if env is None else dict(OmegaConf.to_container(env, resolve=True))
+    if for_eval and kwargs.get("backend", "sim") != "sim":
+        kwargs.update(backend="sim", host=None)
+    return kwargs
+
+
+def make_task_env(cfg: DictConfig, reset_agent: Agent, *, for_eval: bool = False) -> tuple[TransformedEnv, ResetTriggerTransform]:
+    env = make_env(cfg.task.name, device=cfg.device, **env_kwargs(cfg, for_eval=for_eval))
     trigger = make_trigger(cfg, reset_agent)
     env.append_transform(trigger)
     return env, trigger
