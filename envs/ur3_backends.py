@@ -230,17 +230,17 @@ def filter_command(q: np.ndarray, qd: np.ndarray, dt: float, limits: SafetyLimit
     """The velocity command made safe: clipped, kept inside the joint box and the Cartesian box for ``dt``."""
     qd = np.clip(np.asarray(qd, dtype=np.float64), -limits.speed_fraction * VELOCITY_LIMITS,
                  limits.speed_fraction * VELOCITY_LIMITS)
-    # Cartesian box: remove the outward component along every axis the predicted flange would leave by
+    # Cartesian box: remove the outward Cartesian velocity along every axis the predicted flange would
+    # leave the box by (through the Jacobian's pseudo-inverse, so the other axes keep their motion)
     jac = _flange_jacobian(q)
+    jac_pinv = np.linalg.pinv(jac)
     for _ in range(3):
         p_next = flange_pose(q + qd * dt)[0]
         velocity = jac @ qd
         outward = ((p_next > limits.cartesian_high) & (velocity > 0)) | ((p_next < limits.cartesian_low) & (velocity < 0))
         if not outward.any():
             break
-        for axis in np.flatnonzero(outward):
-            row = jac[axis]
-            qd = qd - row * (row @ qd) / max(row @ row, 1e-12)
+        qd = qd - jac_pinv @ np.where(outward, velocity, 0.0)
     # joint box: zero the components that would leave it
     q_next = q + qd * dt
     leaving = ((q_next > limits.joint_high) & (qd > 0)) | ((q_next < limits.joint_low) & (qd < 0))

@@ -1,0 +1,445 @@
+"""The UR3 environment without a robot: the DH-built twin, speedj emulation, the stick, real-time pacing,
+and the ur_rtde backend's safety logic against in-process fakes of ur_rtde's classes."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+from torchrl.envs.utils import check_env_specs
+
+from torchrl_reset_envs import UR3Env, make_env
+from torchrl_reset_envs.ur3 import PEG_TARGET, REACHER_GOAL, console_manual_reset
+from torchrl_reset_envs.ur3_backends import (
+    ConnectionLost,
+    RobotFault,
+    RobotState,
+    RTDEBackend,
+    SafetyLimits,
+    UR3Backend,
+    filter_command,
+)
+from torchrl_reset_envs.ur3_model import HOME_Q, VELOCITY_LIMITS, build_ur3_spec, flange_pose
+
+W = math.atanh(math.sqrt(0.95))
+
+
+# ---------------------------------------------------------------------------------------------- the model
+def test_mujoco_twin_matches_the_dh_kinematics():
+    import mujoco
+
+    model = build_ur3_spec("peg").compile()
+    data = mujoco.MjData(model)
+    rng = np.random.default_rng(0)
+    for _ in range(100):
+        q = rng.uniform(-math.pi, math.pi, 6)
+        data.qpos[:6] = q
+        mujoco.mj_kinematics(model, data)
+        p, rot = flange_pose(q)
+        np.testing.assert_allclose(data.site("flange").xpos, p, atol=1e-9)
+        np.testing.assert_allclose(data.site("flange").xmat.reshape(3, 3), rot, atol=1e-9)
+    # the published zero-configuration flange position of the UR3, in the base frame (ur3.md section 3)
+    np.testing.assert_allclose(flange_pose(np.zeros(6), world=False)[0], [-0.4569, -0.19425, 0.06655], atol=1e-9)
+
+
+def test_home_points_the_flange_down_above_the_table():
+    p, rot = flange_pose(HOME_Q)
+    np.testing.assert_allclose(p, [0.3, -0.2, 0.4], atol=1e-3)
+    assert rot[:, 2] @ np.array([0, 0, -1.0]) > math.cos(math.radians(0.1))
+
+
+# ---------------------------------------------------------------------------------------------- sim backend
+@pytest.mark.parametrize("task, obs_dim", [("peg", 12), ("reacher", 13)])
+def test_sim_tasks_pass_specs_and_run_a_few_hundred_random_steps(task, obs_dim):
+    env = make_env(f"ur3_{task}")
+    check_env_specs(env)
+    td = env.reset()
+    assert td["observation"].shape == (obs_dim,) and td["reset_success"].item() and not td["irrecoverable"].item()
+    rollout = env.rollout(300, break_when_any_done=False)
+    rewards = rollout["next", "reward"]
+    assert torch.isfinite(rollout["next", "observation"]).all() and 0 <= rewards.min() and rewards.max() <= 1
+    assert not rollout["next", "terminated"].any()
+    # cos^2 + sin^2 = 1 for every joint
+    obs = rollout["next", "observation"]
+    torch.testing.assert_close(obs[:, :6] ** 2 + obs[:, 6:12] ** 2, torch.ones(300, 6))
+
+
+@pytest.mark.parametrize("task", ["peg", "reacher"])
+def test_home_passes_the_at_initial_state_check_and_holding_still_stays_there(task):
+    env = UR3Env(task)
+    td = env.reset()
+    assert td["reset_success"].item() and td["reset_reward"].item() == pytest.approx(1.0)
+    for _ in range(100):  # 4 s without motion
+        td = env.step(td.set("action", torch.zeros(6)))["next"]
+        assert td["reset_success"].item() and not td["irrecoverable"].item()
+
+
+def test_speedj_emulation_ramps_at_the_commanded_acceleration():
+    env = UR3Env("peg", acceleration=1.4)
+    td = env.reset()
+    action = torch.zeros(6)
+    action[0], action[1] = 0.3, 0.15
+    q0 = env.backend.read_state().q
+    for _ in range(25):  # 1 s
+        td = env.step(td.set("action", action))["next"]
+    state = env.backend.read_state()
+    # the leading axis ramps to 0.3 rad/s in 0.3 / 1.4 = 0.214 s, then cruises:
+    # displacement = 0.3 * (1 - 0.214 / 2) = 0.268 rad; the other axis, scaled, moves half as far
+    assert state.q[0] - q0[0] == pytest.approx(0.3 * (1 - 0.3 / 1.4 / 2), abs=0.01)
+    assert state.q[1] - q0[1] == pytest.approx(0.5 * (state.q[0] - q0[0]), abs=0.005)
+    assert state.qd[0] == pytest.approx(0.3, abs=0.01) and state.qd[1] == pytest.approx(0.15, abs=0.01)
+    assert np.abs(state.qd[2:]).max() < 0.01
+
+
+def test_actions_are_bounded_by_the_speed_limit():
+    env = UR3Env("peg", speed_limit=0.2)
+    assert env.action_spec.space.high.max().item() == pytest.approx(0.2)
+    td = env.reset()
+    for _ in range(25):
+        td = env.step(td.set("action", torch.full((6,), 3.0)))["next"]
+    assert np.abs(env.backend.read_state().qd).max() < 0.2 + 0.01
+
+
+def test_forced_tilt_spills_the_stick_and_the_flag_stays_until_a_manual_reset():
+    env = UR3Env("reacher")
+    td = env.reset()
+    tilt = torch.zeros(6)
+    tilt[4] = 0.3  # the wrist tilts the cup
+    spilled_at = None
+    for t in range(250):
+        td = env.step(td.set("action", tilt))["next"]
+        if td["irrecoverable"].item():
+            spilled_at = t
+            break
+    assert spilled_at is not None and td["observation"][12].item() == 1.0 and not td["reset_success"].item()
+    for _ in range(spilled_at + 50):  # tilt back past home: the stick stays spilled
+        td = env.step(td.set("action", -tilt))["next"]
+        assert td["irrecoverable"].item() and td["observation"][12].item() == 1.0 and not td["reset_success"].item()
+        assert td["reset_reward"].item() == 0.0
+    td = env.reset()  # the manual reset puts the stick back
+    assert not td["irrecoverable"].item() and td["observation"][12].item() == 0.0 and td["reset_success"].item()
+
+
+def test_forward_rewards_by_hand():
+    env = UR3Env("peg")
+    # at home the tip is 0.3 m below the flange at (0.3, -0.2, 0.1); the target is (0.3, 0, 0):
+    # d = sqrt(0.2^2 + 0.1^2) = 0.2236, 0.2136 beyond the 0.01 tolerance, margin 0.2
+    d = math.hypot(0.2, 0.1)
+    assert np.linalg.norm(env.tip_position(HOME_Q) - PEG_TARGET) == pytest.approx(d, abs=1e-3)
+    assert env.forward_reward(HOME_Q) == pytest.approx(1 - math.tanh(W * (d - 0.01) / 0.2) ** 2, abs=2e-3)
+    reacher = UR3Env("reacher")
+    # the flange starts 0.4 m from the goal: 0.38 beyond the 0.02 tolerance, margin 0.4
+    assert np.linalg.norm(flange_pose(HOME_Q)[0] - REACHER_GOAL) == pytest.approx(0.4, abs=1e-9)
+    assert reacher.forward_reward(HOME_Q) == pytest.approx(1 - math.tanh(W * 0.38 / 0.4) ** 2, abs=1e-6)
+
+
+def test_bad_arguments_and_actions_get_clear_errors():
+    with pytest.raises(ValueError, match="task must be"):
+        UR3Env("juggler")
+    with pytest.raises(ValueError, match="needs host"):
+        UR3Env("peg", backend="rtde")
+    with pytest.raises(ValueError, match="backend must be"):
+        UR3Env("peg", backend="ros")
+    env = UR3Env("peg")
+    td = env.reset()
+    with pytest.raises(ValueError, match=r"shape \(6,\)"):
+        env.step(td.clone().set("action", torch.zeros(5)))
+    with pytest.raises(ValueError, match="non-finite"):
+        env.step(td.clone().set("action", torch.full((6,), float("nan"))))
+
+
+# ---------------------------------------------------------------------------------------------- real time
+class FakeClock:
+    def __init__(self):
+        self.t = 0.0
+
+    def __call__(self):
+        return self.t
+
+    def sleep(self, dt):
+        self.t += max(dt, 0.0)
+
+
+class ClockedBackend(UR3Backend):
+    """A still arm on a fake wall clock, recording commands."""
+
+    realtime = True
+
+    def __init__(self, clock):
+        self.clock = clock
+        self.commands = []
+        self.protective = False
+
+    def connect(self):
+        pass
+
+    def read_state(self):
+        return RobotState(HOME_Q.copy(), np.zeros(6), self.clock(), protective_stop=self.protective)
+
+    def speedj(self, qd, acceleration):
+        self.commands.append((self.clock(), np.array(qd)))
+        return qd
+
+    def stop(self):
+        self.commands.append((self.clock(), "stop"))
+
+    def move_home(self, q_home, speed):
+        return True
+
+    def close(self):
+        pass
+
+    def now(self):
+        return self.clock()
+
+    def wait_until(self, t):
+        self.clock.sleep(t - self.clock())
+
+
+def test_real_time_pacing_time_left_and_overruns():
+    clock = FakeClock()
+    backend = ClockedBackend(clock)
+    env = UR3Env("peg", backend=backend, manual_reset=lambda env: None)
+    td = env.reset()
+    td = env.step(td.set("action", torch.zeros(6)))["next"]
+    assert clock.t == pytest.approx(0.04) and env.time_left() == pytest.approx(0.04)
+    clock.t += 0.03  # the trainer spends 30 ms: 10 ms left
+    assert env.time_left() == pytest.approx(0.01)
+    td = env.step(td.set("action", torch.zeros(6)))["next"]
+    assert backend.commands[-1][0] == pytest.approx(0.07)  # sent at once
+    assert clock.t == pytest.approx(0.08) and env.overruns == 0  # the 25 Hz grid is kept
+    clock.t += 0.05  # 50 ms: the period was missed
+    with pytest.warns(RuntimeWarning, match="overrun"):
+        td = env.step(td.set("action", torch.zeros(6)))["next"]
+    assert env.overruns == 1 and clock.t == pytest.approx(0.17)  # a full period from the late send
+
+
+def test_protective_stop_ends_the_episode_and_stops_the_arm():
+    clock = FakeClock()
+    backend = ClockedBackend(clock)
+    env = UR3Env("peg", backend=backend, manual_reset=lambda env: None)
+    td = env.reset()
+    backend.protective = True
+    td = env.step(td.set("action", torch.zeros(6)))["next"]
+    assert td["terminated"].item() and td["done"].item() and backend.commands[-1][1] == "stop"
+
+
+# ---------------------------------------------------------------------------------------------- rtde backend, fakes
+class FakeRTDEControl:
+    """The methods of ur_rtde's RTDEControlInterface that the backend uses, with its return conventions."""
+
+    def __init__(self, host, receive=None):
+        self.host = host
+        self.receive = receive
+        self.calls = []
+        self.accept = True
+        self.raise_on_speedj = None
+        self.reach_home = True
+
+    def _log(self, name, *args):
+        self.calls.append((name, *args))
+        return self.accept
+
+    def setWatchdog(self, min_frequency=10.0):
+        return self._log("setWatchdog", min_frequency)
+
+    def kickWatchdog(self):
+        return self._log("kickWatchdog")
+
+    def speedJ(self, qd, acceleration=0.5, time=0.0):
+        if self.raise_on_speedj is not None:
+            raise self.raise_on_speedj
+        return self._log("speedJ", list(qd), acceleration, time)
+
+    def speedStop(self, a=10.0):
+        self.calls.append(("speedStop", a))
+        return True
+
+    def moveJ(self, q, speed=1.05, acceleration=1.4, asynchronous=False):
+        if self.reach_home and self.receive is not None:
+            self.receive.q = np.array(q)
+        return self._log("moveJ", list(q), speed, acceleration, asynchronous)
+
+    def stopScript(self):
+        self.calls.append(("stopScript",))
+
+    def disconnect(self):
+        self.calls.append(("disconnect",))
+
+    def names(self):
+        return [c[0] for c in self.calls]
+
+
+class FakeRTDEReceive:
+    """ur_rtde's RTDEReceiveInterface: after a link drop it keeps returning the last values."""
+
+    def __init__(self, host, clock):
+        self.host, self.clock = host, clock
+        self.q = HOME_Q.copy()
+        self.qd = np.zeros(6)
+        self.connected = True
+        self.frozen = False
+        self.bits = 1  # normal
+        self._timestamp = 0.0
+
+    def isConnected(self):
+        return self.connected
+
+    def getTimestamp(self):
+        if self.connected and not self.frozen:
+            self._timestamp = self.clock()
+        return self._timestamp
+
+    def getActualQ(self):
+        return list(self.q)
+
+    def getActualQd(self):
+        return list(self.qd)
+
+    def getSafetyStatusBits(self):
+        return self.bits
+
+    def disconnect(self):
+        self.connected = False
+
+
+@pytest.fixture
+def rtde():
+    clock = FakeClock()
+    receive = FakeRTDEReceive("robot", clock)
+    control = FakeRTDEControl("robot", receive)
+    backend = RTDEBackend("robot", control_factory=lambda host: control, receive_factory=lambda host: receive,
+                          clock=clock, sleep=clock.sleep)
+    backend.connect()
+    return backend, control, receive, clock
+
+
+def test_rtde_arms_the_watchdog_and_kicks_it_with_every_command(rtde):
+    backend, control, receive, clock = rtde
+    assert control.calls[0] == ("setWatchdog", backend.limits.watchdog_hz)
+    for _ in range(3):
+        clock.t += 0.04
+        backend.read_state()
+        backend.speedj(np.zeros(6))
+    assert control.names()[1:] == ["speedJ", "kickWatchdog"] * 3
+
+
+def test_rtde_clips_velocities_to_a_fraction_of_the_hardware_limits(rtde):
+    backend, control, receive, clock = rtde
+    sent = backend.speedj(np.array([5.0, -5.0, 0.1, 9.0, -9.0, 0.0]))
+    limit = backend.limits.speed_fraction * VELOCITY_LIMITS  # 0.25 * (pi, pi, pi, 2pi, 2pi, 2pi)
+    np.testing.assert_allclose(np.abs(sent[[0, 1, 3, 4]]), limit[[0, 1, 3, 4]], rtol=0, atol=1e-12)
+    assert sent[2] == pytest.approx(0.1)
+    assert control.calls[-2][1] == pytest.approx(list(sent)) and control.calls[-2][2] == backend.limits.acceleration
+
+
+def test_rtde_joint_box_zeroes_outward_components_only():
+    limits = SafetyLimits(cartesian_low=np.full(3, -10.0), cartesian_high=np.full(3, 10.0))
+    q = HOME_Q.copy()
+    q[2] = limits.joint_high[2] - 0.001  # at the edge of the box on the elbow
+    out = filter_command(q, np.array([0.1, 0.0, 0.5, 0.0, 0.0, 0.0]), 0.04, limits)
+    assert out[2] == 0.0 and out[0] == pytest.approx(0.1)
+    back = filter_command(q, np.array([0.0, 0.0, -0.5, 0.0, 0.0, 0.0]), 0.04, limits)
+    assert back[2] == pytest.approx(-0.5)
+
+
+def test_rtde_cartesian_box_removes_the_outward_motion():
+    p_home = flange_pose(HOME_Q)[0]
+    limits = SafetyLimits(cartesian_low=p_home - np.array([0.3, 0.3, 0.001]), cartesian_high=p_home + 0.3)
+    # joint velocities that move the flange straight down (the floor of the box is 1 mm below)
+    jac = np.stack([(flange_pose(HOME_Q + dq)[0] - p_home) / 1e-6 for dq in np.eye(6) * 1e-6], axis=1)
+    qd = np.linalg.pinv(jac) @ np.array([0.02, 0.0, -0.05])  # within the speed limits: no clipping
+    out = filter_command(HOME_Q, qd, 0.04, limits)
+    v = jac @ out
+    assert v[2] > -1e-3  # no more downward motion (to first order)
+    assert v[0] == pytest.approx(0.02, abs=1e-3) and abs(v[1]) < 1e-3  # the sideways part survives
+
+
+def test_rtde_stops_on_a_refused_command_and_on_an_exception(rtde):
+    backend, control, receive, clock = rtde
+    control.accept = False
+    with pytest.raises(RobotFault, match="speedJ returned False"):
+        backend.speedj(np.zeros(6))
+    assert control.names()[-1] == "speedStop"
+    control.accept = True
+    control.raise_on_speedj = OSError("socket closed")
+    with pytest.raises(OSError):
+        backend.speedj(np.zeros(6))
+    assert control.names()[-1] == "speedStop"
+
+
+def test_rtde_close_stops_and_disconnects_once(rtde):
+    backend, control, receive, clock = rtde
+    backend.close()
+    assert control.names()[-3:] == ["speedStop", "stopScript", "disconnect"]
+    n = len(control.calls)
+    backend.close()
+    assert len(control.calls) == n
+
+
+def test_rtde_link_drop_and_stale_state_stop_the_arm(rtde):
+    backend, control, receive, clock = rtde
+    clock.t += 0.04
+    backend.read_state()
+    receive.frozen = True  # ur_rtde keeps returning the last values
+    clock.t += 0.05
+    backend.read_state()  # 50 ms without progress: still tolerated
+    clock.t += 0.06
+    with pytest.raises(ConnectionLost, match="not advanced"):
+        backend.read_state()
+    assert control.names()[-1] == "speedStop"
+    receive.frozen = False
+    receive.connected = False
+    with pytest.raises(ConnectionLost, match="lost the RTDE link"):
+        backend.read_state()
+
+
+def test_rtde_protective_stop_is_reported_and_emergency_stop_is_fatal(rtde):
+    backend, control, receive, clock = rtde
+    receive.bits = 1 | 1 << 2
+    clock.t += 0.04
+    assert backend.read_state().protective_stop
+    receive.bits = 1 | 1 << 7
+    clock.t += 0.04
+    with pytest.raises(RobotFault, match="emergency stop"):
+        backend.read_state()
+
+
+def test_rtde_too_many_protective_stops_is_fatal(rtde):
+    backend, control, receive, clock = rtde
+    with pytest.raises(RobotFault, match="protective stops within"):
+        for _ in range(backend.limits.max_protective_stops + 1):
+            clock.t += 2.0
+            receive.bits = 1 | 1 << 2
+            backend.read_state()
+
+
+def test_ur3_env_on_the_rtde_backend_with_fakes_steps_and_ends_on_a_protective_stop(rtde):
+    backend, control, receive, clock = rtde
+    env = UR3Env("peg", backend=backend)
+    td = env.reset()  # console manual reset: moves home (the fake arrives), no prompt needed
+    assert td["reset_success"].item() and ("moveJ", list(HOME_Q), 0.2, 0.5, True) in control.calls
+    for _ in range(3):
+        td = env.step(td.set("action", torch.full((6,), 0.1)))["next"]
+    assert control.names().count("speedJ") == 3 and env.overruns == 0
+    receive.bits = 1 | 1 << 2
+    td = env.step(td.set("action", torch.zeros(6)))["next"]
+    assert td["terminated"].item() and control.names()[-1] == "speedStop"
+
+
+def test_console_manual_reset_asks_a_person_when_needed(rtde):
+    backend, control, receive, clock = rtde
+    env = UR3Env("reacher", backend=backend, manual_reset=lambda env: None, home_speed=0.1)
+    env.reset()
+    env.spilled = True
+    receive.q = HOME_Q + 0.3  # away from home, and the slow moves will not get there
+    control.reach_home = False
+    asked = []
+    with pytest.raises(RuntimeError, match="did not reach home"):
+        console_manual_reset(env, prompt=asked.append, attempts=2)
+    assert "stick is spilled" in asked[0] and "could not reach home" in asked[1]
+    control.reach_home = True
+    asked.clear()
+    console_manual_reset(env, prompt=asked.append)
+    assert "stick is spilled" in asked[0] and len(asked) == 1
