@@ -443,3 +443,56 @@ def test_console_manual_reset_asks_a_person_when_needed(rtde):
     asked.clear()
     console_manual_reset(env, prompt=asked.append)
     assert "stick is spilled" in asked[0] and len(asked) == 1
+
+
+# ---------------------------------------------------------------------------------------------- rtde loopback
+def test_rtde_receive_side_against_a_fake_rtde_server_in_another_process(tmp_path):
+    """Real ur_rtde receive interface <-> a fake controller on a 127.0.0.x address (skipped without ur_rtde)."""
+    import subprocess
+    import sys
+    import time
+    from pathlib import Path
+
+    rtde_receive = pytest.importorskip("rtde_receive")
+    host = f"127.0.0.{np.random.default_rng().integers(2, 250)}"
+    mode = tmp_path / "mode"
+    mode.write_text("normal")
+    server = subprocess.Popen([sys.executable, str(Path(__file__).parent / "rtde_fake_server.py"), host, str(mode)],
+                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        assert server.stdout.readline().strip() == "ready", server.stderr.read()
+        variables = ["timestamp", "actual_q", "actual_qd", "robot_mode", "safety_mode", "safety_status_bits",
+                     "robot_status_bits", "runtime_state"]
+        backend = RTDEBackend(host, control_factory=lambda h: FakeRTDEControl(h),
+                              receive_factory=lambda h: rtde_receive.RTDEReceiveInterface(h, 125.0, variables))
+        backend.connect()
+        time.sleep(0.1)
+        state = backend.read_state()
+        np.testing.assert_allclose(state.q, HOME_Q, atol=1e-12)
+        assert not state.protective_stop
+
+        def wait_for(condition, seconds=2.0):
+            deadline = time.monotonic() + seconds
+            while time.monotonic() < deadline:
+                if condition():
+                    return True
+                time.sleep(0.02)
+            return False
+
+        mode.write_text("protective")
+        assert wait_for(lambda: backend.read_state().protective_stop)
+        mode.write_text("freeze")  # the link stays up, the data stops: ur_rtde repeats the last values
+        with pytest.raises(ConnectionLost, match="not advanced"):
+            wait_for(lambda: backend.read_state() is None)
+        mode.write_text("normal")  # data flows again: readings recover
+        time.sleep(0.3)
+        assert not backend.read_state().protective_stop
+        mode.write_text("exit")  # the controller drops the link
+        with pytest.raises(ConnectionLost):
+            wait_for(lambda: backend.read_state() is None)
+        assert wait_for(lambda: not backend.receive.isConnected())
+        with pytest.raises(ConnectionLost, match="lost the RTDE link"):
+            backend.read_state()
+    finally:
+        server.kill()
+        server.wait()
