@@ -17,7 +17,7 @@ import numpy as np
 
 __all__ = [
     "DH_A", "DH_D", "DH_ALPHA", "LINK_MASSES", "VELOCITY_LIMITS", "JOINT_LOW", "JOINT_HIGH", "BASE_POS",
-    "BASE_QUAT", "HOME_Q", "PEG_LENGTH", "TABLE_TOP", "dh_transforms", "flange_pose", "build_ur3_spec",
+    "BASE_QUAT", "HOME_Q", "PEG_LENGTH", "dh_transforms", "flange_pose", "build_ur3_spec",
 ]
 
 # UR3 (CB3) DH parameters (m, rad).
@@ -35,8 +35,7 @@ BASE_POS = np.array([0.0, 0.0, 0.9])
 BASE_QUAT = np.array([math.cos(math.radians(135) / 2), 0.0, math.sin(math.radians(135) / 2), 0.0])
 #: home joint angles: the flange points straight down, 0.4 m above the floor at (0.3, -0.2)
 HOME_Q = np.array([1.4214, -1.9047, 1.3456, -1.1595, 0.7965, 0.0])
-PEG_LENGTH = 0.30
-TABLE_TOP = 0.0  # the floor serves as the table
+PEG_LENGTH = 0.30  # the peg runs along the flange's z axis; the floor (z = 0) serves as the table
 
 
 def _x_quat(angle: float) -> list[float]:
@@ -112,8 +111,7 @@ def build_ur3_spec(task: str, *, kp: float = 5000.0) -> mujoco.MjSpec:
         act.ctrlrange = [lo, hi]
         act.ctrllimited = True
         parent = body
-    parent = parent.add_body(name="flange", pos=[DH_A[5], 0, DH_D[5]], quat=_x_quat(DH_ALPHA[5]))
-    flange = parent
+    flange = parent.add_body(name="flange", pos=[DH_A[5], 0, DH_D[5]], quat=_x_quat(DH_ALPHA[5]))
     flange.add_site(name="flange", size=[0.01, 0, 0], rgba=[1, 0, 0, 1])
     if task == "peg":
         flange.add_geom(name="peg", type=mujoco.mjtGeom.mjGEOM_CYLINDER, fromto=[0, 0, 0, 0, 0, PEG_LENGTH],

@@ -41,7 +41,9 @@ from train_utils import (  # noqa: E402
     make_forward_agent,
     make_reset_agent,
     make_task_env,
+    realtime_env,
     reset_horizon,
+    UpdateBudget,
     validate,
     with_exploration,
 )
@@ -53,7 +55,7 @@ PROGRESS_FIELDS = [
     "frames", "forward_steps", "reset_steps", "forward_episodes", "reset_episodes", "manual_resets",
     "triggered_resets", "requested_resets", "successful_resets", "forward_share", "reset_success_rate",
     "eval_return", "average_return", "steps_per_second", "loss_forward_actor", "loss_forward_critic",
-    "loss_reset_actor", "loss_reset_critic",
+    "loss_reset_actor", "loss_reset_critic", "skipped_updates",
 ]
 EVAL_FIELDS = ["frames", "forward_return", "forward_steps", "triggered", "reset_success", "reset_steps"]
 TRIGGER_FIELDS = ["frames", "steps", "value", "observation"]
@@ -150,7 +152,15 @@ def train(cfg: DictConfig) -> dict:
     heat_up = int(cfg.heat_up)
     ensemble_size = int(cfg.algo.num_members)
 
+    robot = realtime_env(env)
+    budget = UpdateBudget()
+
+    def fits(name: str) -> bool:
+        """On a real-time robot, whether the update fits in what is left of the control period."""
+        return robot is None or budget.fits(name, robot.time_left())
+
     def update(agent, sample, names) -> dict[str, float]:
+        started = time.perf_counter()
         losses = agent.loss(sample)
         total = sum(losses[name] for name in names)
         if not torch.isfinite(total):
@@ -163,6 +173,7 @@ def train(cfg: DictConfig) -> dict:
         total.backward()
         agent.optimizer.step()
         agent.targets.step()
+        budget.record("forward" if agent is forward else "reset", time.perf_counter() - started)
         return {name: float(losses[name].detach()) for name in names}
 
     def log_row(elapsed: float) -> dict:
@@ -174,7 +185,7 @@ def train(cfg: DictConfig) -> dict:
             "forward_share": collector.forward_share, "reset_success_rate": collector.reset_success_rate,
             "eval_return": returns[-1] if returns else float("nan"),
             "average_return": float(np.mean(returns)) if returns else float("nan"),
-            "steps_per_second": collector.frames / max(elapsed, 1e-9), **losses,
+            "steps_per_second": collector.frames / max(elapsed, 1e-9), "skipped_updates": budget.skipped, **losses,
         }
 
     bar = tqdm(total=int(cfg.total_steps), initial=collector.frames, desc=f"{cfg.task.name}/{cfg.algo.name}",
@@ -186,12 +197,12 @@ def train(cfg: DictConfig) -> dict:
             batch = batch.to(cfg.device)
             if DualCollector.phase_of(batch) == "forward":
                 forward_rb.extend(batch)
-                if collector.counters["forward_steps"] > heat_up:
+                if collector.counters["forward_steps"] > heat_up and fits("forward"):
                     out = update(forward, forward_rb.sample(), ("loss_actor", "loss_value"))
                     history["last_losses"].update(loss_forward_actor=out["loss_actor"], loss_forward_critic=out["loss_value"])
             else:
                 reset_rb.extend(batch)
-                if collector.counters["reset_steps"] > heat_up:
+                if collector.counters["reset_steps"] > heat_up and fits("reset"):
                     sample = reset_rb.sample().to(cfg.device)
                     if cfg.algo.name == "ours":
                         sample.set("example", collector.example_buffer.sample(sample.shape[0]).to(cfg.device))
@@ -240,6 +251,8 @@ def train(cfg: DictConfig) -> dict:
         "final_eval_return": history["eval_returns"][-1] if history["eval_returns"] else None,
         "evaluations": len(history["eval_returns"]),
         **{k: collector.counters[k] for k in ("triggered_resets", "requested_resets", "successful_resets", "reset_episodes")},
+        "skipped_updates": budget.skipped,
+        "overruns": getattr(robot, "overruns", 0),
         "seconds": round(history["elapsed"], 1),
         "steps_per_second": round(collector.frames / max(history["elapsed"], 1e-9), 1),
         "device": str(cfg.device), "torch": torch.__version__, "torchrl": torchrl.__version__,

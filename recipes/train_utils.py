@@ -209,6 +209,37 @@ def lnt_batch(sample, algo: DictConfig, num_members: int):
     return sample
 
 
+class UpdateBudget:
+    """On a real-time robot, run an update only if it fits in the time left in the control period.
+
+    Keeps a running estimate of each agent's update duration (the slowest recent one, decaying);
+    ``fits(agent, time_left)`` says whether that estimate fits; skipped updates are counted.
+    """
+
+    def __init__(self, margin: float = 0.002):
+        self.margin = margin
+        self.estimate: dict[str, float] = {}
+        self.skipped = 0
+
+    def fits(self, agent: str, time_left: float) -> bool:
+        if time_left - self.margin >= self.estimate.get(agent, 0.0):
+            return True
+        self.skipped += 1
+        return False
+
+    def record(self, agent: str, seconds: float) -> None:
+        self.estimate[agent] = max(seconds, 0.9 * self.estimate.get(agent, seconds))
+
+
+def realtime_env(env: TransformedEnv):
+    """The innermost env if it runs in real time (the UR3 arm on the rtde backend), else None."""
+    base = env
+    while isinstance(base, TransformedEnv):
+        base = base.base_env
+    backend = getattr(base, "backend", None)
+    return base if backend is not None and getattr(backend, "realtime", False) and hasattr(base, "time_left") else None
+
+
 # ------------------------------------------------------------------------------------------ evaluation
 def evaluate(env: TransformedEnv, trigger: ResetTriggerTransform, forward_actor, reset_actor, *, horizon: int,
              reset_horizon: int, min_reset_steps: int, gamma: float) -> dict[str, Any]:

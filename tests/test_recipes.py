@@ -199,3 +199,25 @@ def test_lnt_reset_loss_gives_each_member_its_own_td_target(tmp_path):
         assert q.shape == (b, k)
         expected = ((q - (reward + cfg.gamma * q_next)) ** 2).mean()  # member i against r + gamma Q_i(s', pi(s'))
         assert float(loss.detach()) == pytest.approx(float(expected), rel=1e-5)
+
+
+def test_update_budget_skips_updates_that_would_not_fit_in_the_control_period():
+    budget = train_utils.UpdateBudget(margin=0.002)
+    assert budget.fits("reset", 0.04)  # nothing measured yet
+    budget.record("reset", 0.030)
+    assert not budget.fits("reset", 0.031)  # 31 ms left - 2 ms margin < 30 ms
+    assert budget.fits("reset", 0.033) and budget.fits("forward", 0.003)
+    budget.record("reset", 0.010)  # the estimate decays: max(10 ms, 0.9 * 30 ms) = 27 ms
+    assert budget.estimate["reset"] == pytest.approx(0.027)
+    assert budget.skipped == 1
+
+
+def test_realtime_env_is_found_only_on_a_real_time_backend():
+    from test_ur3 import ClockedBackend, FakeClock
+    from torchrl.envs import TransformedEnv
+
+    from torchrl_reset_envs import UR3Env
+
+    assert train_utils.realtime_env(train.make_env("ur3_peg")) is None
+    robot = UR3Env("peg", backend=ClockedBackend(FakeClock()), manual_reset=lambda env: None)
+    assert train_utils.realtime_env(TransformedEnv(TransformedEnv(robot))) is robot
