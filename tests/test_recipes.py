@@ -220,4 +220,4 @@ def test_realtime_env_is_found_only_on_a_real_time_backend():
 
     assert train_utils.realtime_env(train.make_env("ur3_peg")) is None
     robot = UR3Env("peg", backend=ClockedBackend(FakeClock()), manual_reset=lambda env: None)
-    assert train_utils.realtime_env(TransformedEnv(TransformedEnv(robot))) is robot
+    assert train_utils.realtime_env(TransformedEnv(robot)) is robot
