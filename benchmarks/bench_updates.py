@@ -1,0 +1,241 @@
+"""Update speed at the paper's sizes, against the FLOP limit of this machine, and how it scales.
+
+    python benchmarks/bench_updates.py                 # paper sizes + scaling, about two minutes on 2 cores
+    python benchmarks/bench_updates.py --quick         # fewer repetitions
+
+Measures, in one run:
+1. the machine's matrix-multiply rate (float32, 1024 x 1024 products, the best of several runs);
+2. one whole update, as the training recipe runs it (loss, backward, optimizer step, target update),
+   for the forward DDPG agent (batch 64), the RCE reset agent (K = 5, batch 256 + 256 examples,
+   n = 10, priors) and the LNT reset agent (K = 20, batch 256), with the networks of the paper
+   (400-300) on peg-insertion's sizes (14 observations, 7 actions). Beside each: its FLOPs (counted
+   with ``torch.utils.flop_counter``'s formulas while it runs), the time those FLOPs take at the measured rate,
+   and the fraction of that limit reached;
+3. the RCE reset update for K = 1, 5, 10, 20 and batch 64, 256, 1024.
+
+Prints a table and writes ``benchmarks/results/updates-<date>.json`` and ``.md`` with the machine,
+the versions and the date. Compares against the targets of the speed issue: reset update <= 35 ms
+and <= 2x its FLOP-limit time, forward update <= 3 ms, K = 20 < 4x K = 5.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import statistics
+import sys
+import time
+from datetime import datetime, timezone
+from pathlib import Path
+
+import torch
+from hydra import compose, initialize_config_dir
+from tensordict import TensorDict
+from torch.utils._python_dispatch import TorchDispatchMode
+from torch.utils.flop_counter import flop_registry
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "recipes"))
+
+import torchrl  # noqa: E402
+import train_utils  # noqa: E402
+
+OBS, ACT = 14, 7  # peg-insertion
+
+
+def paper_config(algo: str, **overrides):
+    with initialize_config_dir(config_dir=str(ROOT / "recipes" / "conf"), version_base="1.3"):
+        cfg = compose(config_name="config", overrides=["task=peg_insertion_insert", f"algo={algo}",
+                                                        *[f"{k}={v}" for k, v in overrides.items()]])
+    return cfg
+
+
+def action_spec():
+    from torchrl.data import Bounded
+
+    return Bounded(-2.0, 2.0, shape=(ACT,))
+
+
+def state(batch: int) -> TensorDict:
+    return TensorDict(observation=torch.randn(batch, OBS), batch_size=[batch])
+
+
+def forward_batch(batch: int) -> TensorDict:
+    return TensorDict(
+        observation=torch.randn(batch, OBS), action=torch.rand(batch, ACT) * 4 - 2,
+        next=TensorDict(observation=torch.randn(batch, OBS), reward=torch.rand(batch, 1),
+                        done=torch.zeros(batch, 1, dtype=torch.bool), terminated=torch.zeros(batch, 1, dtype=torch.bool),
+                        batch_size=[batch]),
+        batch_size=[batch],
+    )
+
+
+def reset_batch(batch: int, algo: str) -> TensorDict:
+    td = forward_batch(batch)
+    if algo == "ours":
+        td.set("nstep", state(batch))
+        td.set("example", state(batch))
+    else:
+        td.set(("next", "reset_reward"), torch.rand(batch, 1))
+        td.set(("next", "reset_success"), torch.rand(batch, 1) > 0.5)
+    return td
+
+
+def make_update(kind: str, *, members: int | None = None, batch: int | None = None):
+    """A closure running one whole update of ``kind`` (forward, ours, lnt) on fresh random data."""
+    if kind == "forward":
+        cfg = paper_config("ours")
+        agent = train_utils.make_forward_agent(cfg, OBS, action_spec())
+        size = batch or cfg.forward.batch_size
+        names = ("loss_actor", "loss_value")
+
+        def data():
+            return forward_batch(size)
+    else:
+        overrides = {} if members is None else {"algo.num_members": members}
+        cfg = paper_config(kind, **overrides)
+        agent = train_utils.make_reset_agent(cfg, OBS, action_spec())
+        size = batch or cfg.reset.batch_size
+        names = ("loss_actor", "loss_classifier") if kind == "ours" else ("loss_actor", "loss_value")
+
+        def data():
+            td = reset_batch(size, kind)
+            return td if kind == "ours" else train_utils.lnt_batch(td, cfg.algo, cfg.algo.num_members)
+
+    def update(td):
+        losses = agent.loss(td)
+        total = sum(losses[n] for n in names)
+        agent.optimizer.zero_grad()
+        total.backward()
+        agent.optimizer.step()
+        agent.targets.step()
+
+    return update, data
+
+
+class CountFlops(TorchDispatchMode):
+    """Adds up the FLOPs of every matrix product and convolution run under it (torch's FLOP formulas).
+
+    (torch's ``FlopCounterMode`` also tracks modules, which does not work with tensordict's parameter
+    containers; the formulas are the same.)
+    """
+
+    def __init__(self):
+        super().__init__()
+        self.total = 0
+
+    def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+        kwargs = kwargs or {}
+        out = func(*args, **kwargs)
+        formula = flop_registry.get(func._overloadpacket)
+        if formula is not None:
+            self.total += formula(*args, **kwargs, out_val=out)
+        return out
+
+
+def time_update(update, data, repeats: int, warmup: int = 5) -> dict:
+    batches = [data() for _ in range(4)]
+    for i in range(warmup):
+        update(batches[i % 4])
+    times = []
+    for i in range(repeats):
+        start = time.perf_counter()
+        update(batches[i % 4])
+        times.append(time.perf_counter() - start)
+    with CountFlops() as counter:
+        update(batches[0])
+    return {"median_ms": 1000 * statistics.median(times), "min_ms": 1000 * min(times), "flops": counter.total}
+
+
+def matmul_rate(seconds: float = 1.0, n: int = 1024) -> float:
+    a, b = torch.randn(n, n), torch.randn(n, n)
+    for _ in range(3):
+        a @ b
+    best = 0.0
+    deadline = time.perf_counter() + seconds
+    while time.perf_counter() < deadline:
+        start = time.perf_counter()
+        for _ in range(5):
+            a @ b
+        best = max(best, 5 * 2 * n**3 / (time.perf_counter() - start))
+    return best
+
+
+def machine() -> dict:
+    cpu = platform.processor() or platform.machine()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    return {"cpu": cpu, "cores": os.cpu_count(), "torch_threads": torch.get_num_threads(), "python": platform.python_version(),
+            "torch": torch.__version__, "torchrl": torchrl.__version__, "date": datetime.now(timezone.utc).isoformat(timespec="seconds")}
+
+
+def main(argv=None) -> dict:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--quick", action="store_true", help="fewer repetitions")
+    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results")
+    args = parser.parse_args(argv)
+    torch.set_num_threads(args.threads)
+    torch.manual_seed(0)
+    repeats = 20 if args.quick else 60
+
+    rate = matmul_rate()
+    rows = []
+    for label, kind, members, batch in (
+        ("forward DDPG update (batch 64)", "forward", None, None),
+        ("reset RCE update (K = 5, batch 256 + 256 examples, n = 10)", "ours", None, None),
+        ("reset LNT update (K = 20, batch 256)", "lnt", None, None),
+    ):
+        result = time_update(*make_update(kind, members=members, batch=batch), repeats)
+        limit_ms = 1000 * result["flops"] / rate
+        rows.append({"update": label, **result, "flop_limit_ms": limit_ms, "fraction_of_limit": limit_ms / result["median_ms"]})
+    scaling = []
+    for members in (1, 5, 10, 20):
+        for batch in (64, 256, 1024):
+            result = time_update(*make_update("ours", members=members, batch=batch), max(5, repeats // 4), warmup=2)
+            scaling.append({"members": members, "batch": batch, **result})
+
+    by = {(r["members"], r["batch"]): r["median_ms"] for r in scaling}
+    forward, ours = rows[0], rows[1]
+    targets = [
+        ("reset RCE update <= 35 ms", ours["median_ms"], ours["median_ms"] <= 35.0),
+        ("reset RCE update <= 2x its FLOP-limit time", ours["median_ms"] / ours["flop_limit_ms"],
+         ours["median_ms"] <= 2 * ours["flop_limit_ms"]),
+        ("forward update <= 3 ms", forward["median_ms"], forward["median_ms"] <= 3.0),
+        ("K = 20 costs < 4x K = 5 (batch 256)", by[(20, 256)] / by[(5, 256)], by[(20, 256)] < 4 * by[(5, 256)]),
+    ]
+    report = {"machine": machine(), "matmul_gflops": rate / 1e9, "updates": rows, "scaling": scaling,
+              "targets": [{"target": t, "measured": v, "met": ok} for t, v, ok in targets]}
+
+    lines = [f"# Update speed ({report['machine']['date']})", "",
+             f"Machine: {report['machine']['cpu']}, {report['machine']['cores']} cores, {args.threads} torch threads; "
+             f"torch {torch.__version__}, torchrl {torchrl.__version__}, Python {platform.python_version()}.",
+             f"Measured float32 matrix-multiply rate: {rate / 1e9:.0f} GFLOP/s.", "",
+             "| update | median (ms) | min (ms) | GFLOP | FLOP-limit time (ms) | fraction of the limit |", "|---|---|---|---|---|---|"]
+    for r in rows:
+        lines.append(f"| {r['update']} | {r['median_ms']:.2f} | {r['min_ms']:.2f} | {r['flops'] / 1e9:.3f} | "
+                     f"{r['flop_limit_ms']:.2f} | {100 * r['fraction_of_limit']:.0f}% |")
+    lines += ["", "Reset RCE update, median ms (rows: K; columns: batch):", "", "| K | 64 | 256 | 1024 |", "|---|---|---|---|"]
+    for members in (1, 5, 10, 20):
+        lines.append(f"| {members} | " + " | ".join(f"{by[(members, b)]:.1f}" for b in (64, 256, 1024)) + " |")
+    lines += ["", "| target | measured | met |", "|---|---|---|"]
+    for t, v, ok in targets:
+        lines.append(f"| {t} | {v:.2f} | {'yes' if ok else 'NO'} |")
+    text = "\n".join(lines) + "\n"
+    print(text)
+    args.out.mkdir(parents=True, exist_ok=True)
+    stamp = datetime.now(timezone.utc).strftime("%Y%m%d-%H%M")
+    (args.out / f"updates-{stamp}.json").write_text(json.dumps(report, indent=2))
+    (args.out / f"updates-{stamp}.md").write_text(text)
+    print(f"wrote {args.out / f'updates-{stamp}.md'} and .json")
+    return report
+
+
+if __name__ == "__main__":
+    main()
