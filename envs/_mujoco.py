@@ -11,7 +11,29 @@ import numpy as np
 import torch
 from gymnasium import spaces
 
-__all__ = ["MujocoResetEnv", "RenderingUnavailableError", "tolerance", "asset_path"]
+__all__ = ["MujocoResetEnv", "RenderingUnavailableError", "tolerance", "asset_path", "get_physics", "set_physics"]
+
+_STATE_SPEC = mujoco.mjtState.mjSTATE_INTEGRATION
+
+
+def get_physics(model: mujoco.MjModel, data: mujoco.MjData) -> torch.Tensor:
+    """The full integration state (``mj_getState``: time, qpos, qvel, act, warm start, controls...) as float64."""
+    physics = np.empty(mujoco.mj_stateSize(model, _STATE_SPEC))
+    mujoco.mj_getState(model, data, physics, _STATE_SPEC)
+    return torch.from_numpy(physics)
+
+
+def set_physics(model: mujoco.MjModel, data: mujoco.MjData, physics, owner: str = "env") -> None:
+    """Restore a state from :func:`get_physics`; a clear error when it belongs to another model."""
+    physics = torch.as_tensor(physics, dtype=torch.float64).numpy()
+    expected = mujoco.mj_stateSize(model, _STATE_SPEC)
+    if physics.shape != (expected,):
+        raise ValueError(
+            f"{owner}: simulator state has {physics.size} numbers, this model needs {expected} "
+            "(a state saved from another task?)."
+        )
+    mujoco.mj_setState(model, data, physics, _STATE_SPEC)
+    mujoco.mj_forward(model, data)
 
 _TANH_SQUARED_W = math.atanh(math.sqrt(0.95))
 
@@ -103,7 +125,6 @@ class MujocoResetEnv(gymnasium.Env):
         self._irrecoverable = False
         self.dt = float(self.model.opt.timestep) * self.frame_skip
         self.metadata = {**type(self).metadata, "render_fps": int(round(1.0 / self.dt))}
-        self._state_spec = mujoco.mjtState.mjSTATE_INTEGRATION
         low, high = self.model.actuator_ctrlrange.T.astype(np.float32)
         self.action_space = spaces.Box(low, high, dtype=np.float32)
         self._action_low, self._action_high = low.astype(np.float64), high.astype(np.float64)
@@ -209,24 +230,14 @@ class MujocoResetEnv(gymnasium.Env):
 
     def get_simulator_state(self) -> dict[str, Any]:
         """Everything needed to continue the exact same trajectory: physics, latched flag, RNG."""
-        physics = np.empty(mujoco.mj_stateSize(self.model, self._state_spec))
-        mujoco.mj_getState(self.model, self.data, physics, self._state_spec)
         return {
-            "physics": torch.from_numpy(physics),
+            "physics": get_physics(self.model, self.data),
             "irrecoverable": self._irrecoverable,
             "np_random": self.np_random.bit_generator.state,
         }
 
     def set_simulator_state(self, state: dict[str, Any]) -> None:
-        physics = np.asarray(torch.as_tensor(state["physics"], dtype=torch.float64).numpy())
-        expected = mujoco.mj_stateSize(self.model, self._state_spec)
-        if physics.shape != (expected,):
-            raise ValueError(
-                f"{type(self).__name__}: simulator state has {physics.size} numbers, this model needs {expected} "
-                "(a state saved from another task?)."
-            )
-        mujoco.mj_setState(self.model, self.data, physics, self._state_spec)
-        mujoco.mj_forward(self.model, self.data)
+        set_physics(self.model, self.data, state["physics"], type(self).__name__)
         self._irrecoverable = bool(state["irrecoverable"])
         self.np_random.bit_generator.state = state["np_random"]
 

@@ -14,7 +14,7 @@ from torchrl.envs import EnvBase
 
 from ._mujoco import tolerance
 from .ur3_backends import RobotState, RTDEBackend, SafetyLimits, SimBackend, UR3Backend, cup_axis_tilt
-from .ur3_model import HOME_Q, PEG_LENGTH, flange_pose
+from .ur3_model import CUP_RADIUS, HOME_Q, PEG_LENGTH, flange_pose
 
 __all__ = ["UR3Env", "sim_manual_reset", "console_manual_reset", "PEG_TARGET", "REACHER_GOAL"]
 
@@ -167,8 +167,6 @@ class UR3Env(EnvBase):
         if self.stick_sensor is not None:
             return bool(self.stick_sensor(self, state))
         if "stick_tilt" in state.extra:
-            from .ur3_model import CUP_RADIUS
-
             return state.extra["stick_tilt"] > self.spill_angle or state.extra["stick_offset"] > CUP_RADIUS + 0.01
         return cup_axis_tilt(state.q) > self.spill_angle
 
@@ -252,29 +250,14 @@ class UR3Env(EnvBase):
 
     # ------------------------------------------------------------------ simulator state (sim backend)
     def get_simulator_state(self) -> dict | None:
-        backend = self.backend
-        if not isinstance(backend, SimBackend):
+        """The twin's state plus the spill flag and the period clock; None on a real arm (it cannot be saved)."""
+        if not isinstance(self.backend, SimBackend):
             return None
-        import mujoco
-
-        spec = mujoco.mjtState.mjSTATE_INTEGRATION
-        physics = np.empty(mujoco.mj_stateSize(backend.model, spec))
-        mujoco.mj_getState(backend.model, backend.data, physics, spec)
-        return {"physics": torch.from_numpy(physics), "v_ref": torch.from_numpy(backend._v_ref.copy()),
-                "cmd": torch.from_numpy(backend._cmd.copy()), "acc": backend._acc, "spilled": self.spilled,
-                "deadline": self._deadline}
+        return {**self.backend.get_simulator_state(), "spilled": self.spilled, "deadline": self._deadline}
 
     def set_simulator_state(self, state: dict | None) -> None:
         if state is None:
             return
-        import mujoco
-
-        backend = self.backend
-        spec = mujoco.mjtState.mjSTATE_INTEGRATION
-        mujoco.mj_setState(backend.model, backend.data, np.asarray(state["physics"].numpy()), spec)
-        mujoco.mj_forward(backend.model, backend.data)
-        backend._v_ref = state["v_ref"].numpy().copy()
-        backend._cmd = state["cmd"].numpy().copy()
-        backend._acc = float(state["acc"])
+        self.backend.set_simulator_state(state)
         self.spilled = bool(state["spilled"])
         self._deadline = float(state["deadline"])

@@ -16,7 +16,9 @@ from dataclasses import dataclass, field
 
 import mujoco
 import numpy as np
+import torch
 
+from ._mujoco import get_physics, set_physics
 from .ur3_model import HOME_Q, JOINT_HIGH, JOINT_LOW, VELOCITY_LIMITS, build_ur3_spec, flange_pose
 
 __all__ = [
@@ -117,8 +119,18 @@ class SimBackend(UR3Backend):
         self._cmd = np.zeros(6)
         self._acc = 1.0
         self._v_ref = np.zeros(6)
-        self._home_state = None
         self.restore_home(HOME_Q)
+
+    def get_simulator_state(self) -> dict:
+        """Physics plus the emulated speedj state (command, reference velocity, acceleration)."""
+        return {"physics": get_physics(self.model, self.data), "v_ref": torch.from_numpy(self._v_ref.copy()),
+                "cmd": torch.from_numpy(self._cmd.copy()), "acc": self._acc}
+
+    def set_simulator_state(self, state: dict) -> None:
+        set_physics(self.model, self.data, state["physics"], type(self).__name__)
+        self._v_ref = state["v_ref"].numpy().copy()
+        self._cmd = state["cmd"].numpy().copy()
+        self._acc = float(state["acc"])
 
     def restore_home(self, q_home: np.ndarray) -> None:
         mujoco.mj_resetData(self.model, self.data)

@@ -361,14 +361,3 @@ class CsvTable:
                 writer.writeheader()
             writer.writerow(row)
 
-
-def read_csv(path: Path) -> list[dict[str, float]]:
-    with open(path, newline="") as f:
-        return [{k: _number(v) for k, v in row.items()} for row in csv.DictReader(f)]
-
-
-def _number(value: str):
-    try:
-        return float(value)
-    except (TypeError, ValueError):
-        return value
