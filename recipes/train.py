@@ -43,6 +43,7 @@ from train_utils import (  # noqa: E402
     make_task_env,
     realtime_env,
     reset_horizon,
+    retain_freed_memory,
     UpdateBudget,
     validate,
     with_exploration,
@@ -73,6 +74,8 @@ def train(cfg: DictConfig) -> dict:
     run_dir = Path(cfg.run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
     torch.set_num_threads(int(cfg.threads))
+    if cfg.speed.retain_memory:
+        retain_freed_memory()
     torch.manual_seed(cfg.seed)
     np.random.seed(cfg.seed)
     random.seed(cfg.seed)
@@ -152,6 +155,9 @@ def train(cfg: DictConfig) -> dict:
     heat_up = int(cfg.heat_up)
     ensemble_size = int(cfg.algo.num_members)
 
+    compiled = set(cfg.speed.compile)
+    losses_of = {id(agent): torch.compile(agent.loss) if name in compiled else agent.loss
+                 for name, agent in (("forward", forward), ("reset", reset))}
     robot = realtime_env(env)
     budget = UpdateBudget()
 
@@ -161,7 +167,7 @@ def train(cfg: DictConfig) -> dict:
 
     def update(agent, sample, names) -> dict[str, float]:
         started = time.perf_counter()
-        losses = agent.loss(sample)
+        losses = losses_of[id(agent)](sample)
         total = sum(losses[name] for name in names)
         if not torch.isfinite(total):
             path = checkpoint()
@@ -188,21 +194,29 @@ def train(cfg: DictConfig) -> dict:
             "steps_per_second": collector.frames / max(elapsed, 1e-9), "skipped_updates": budget.skipped, **losses,
         }
 
+    # wall time of the steps of each phase once its agent updates (env step, policy, trigger, buffer, update),
+    # from its 11th update on: the first ones include one-off costs (the compile pause with speed.compile)
+    step_time = history.setdefault("step_time", {"forward": [0.0, 0], "reset": [0.0, 0]})
+    warm_up_updates = 10
     bar = tqdm(total=int(cfg.total_steps), initial=collector.frames, desc=f"{cfg.task.name}/{cfg.algo.name}",
                unit="step", mininterval=2.0, disable=not cfg.progress_bar, dynamic_ncols=True)
     start = time.perf_counter() - history["elapsed"]
     interrupted = False
+    last = time.perf_counter()
     try:
         for batch in collector:
             batch = batch.to(cfg.device)
-            if DualCollector.phase_of(batch) == "forward":
+            phase = DualCollector.phase_of(batch)
+            updating = collector.counters[f"{phase}_steps"] > heat_up
+            timed = collector.counters[f"{phase}_steps"] > heat_up + warm_up_updates
+            if phase == "forward":
                 forward_rb.extend(batch)
-                if collector.counters["forward_steps"] > heat_up and fits("forward"):
+                if updating and fits("forward"):
                     out = update(forward, forward_rb.sample(), ("loss_actor", "loss_value"))
                     history["last_losses"].update(loss_forward_actor=out["loss_actor"], loss_forward_critic=out["loss_value"])
             else:
                 reset_rb.extend(batch)
-                if collector.counters["reset_steps"] > heat_up and fits("reset"):
+                if updating and fits("reset"):
                     sample = reset_rb.sample().to(cfg.device)
                     if cfg.algo.name == "ours":
                         sample.set("example", collector.example_buffer.sample(sample.shape[0]).to(cfg.device))
@@ -212,6 +226,11 @@ def train(cfg: DictConfig) -> dict:
                         out = update(reset, lnt_batch(sample, cfg.algo, ensemble_size), ("loss_actor", "loss_value"))
                         history["last_losses"].update(loss_reset_actor=out["loss_actor"], loss_reset_critic=out["loss_value"])
             frames = collector.frames
+            now = time.perf_counter()
+            if timed:
+                step_time[phase][0] += now - last
+                step_time[phase][1] += batch.numel()
+            last = now
             bar.update(batch.numel())
             for event in collector.pop_events():
                 if event["outcome"] == "triggered":
@@ -255,6 +274,7 @@ def train(cfg: DictConfig) -> dict:
         "overruns": getattr(robot, "overruns", 0),
         "seconds": round(history["elapsed"], 1),
         "steps_per_second": round(collector.frames / max(history["elapsed"], 1e-9), 1),
+        "step_seconds": {name: (total / count if count else None) for name, (total, count) in step_time.items()},
         "device": str(cfg.device), "torch": torch.__version__, "torchrl": torchrl.__version__,
     }
     (run_dir / "summary.json").write_text(json.dumps(summary, indent=2, default=_json_default))

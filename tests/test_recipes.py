@@ -26,7 +26,7 @@ from torchrl_reset_envs import TASKS  # noqa: E402
 TINY = [
     "hidden_sizes=[16,16]", "heat_up=40", "task.forward_horizon=20", "forward.batch_size=16", "reset.batch_size=16",
     "forward.buffer_size=2000", "reset.buffer_size=2000", "eval_every=100", "log_every=50", "checkpoint_every=100",
-    "progress_bar=false",
+    "progress_bar=false", "speed.compile=[]",
 ]
 
 
@@ -57,6 +57,23 @@ def test_every_task_and_algorithm_trains_for_a_few_hundred_steps(tmp_path, task,
             assert progress[f"loss_{agent}_critic"] not in ("", "nan")
     assert (tmp_path / "checkpoints" / "latest").read_text() == "step_0000000200"
     assert (tmp_path / "config.yaml").exists() and any((tmp_path / "logs").rglob("*.csv"))
+    for agent in ("forward", "reset"):  # mean wall time of a step once that agent updates
+        seconds = saved["step_seconds"][agent]
+        assert (seconds is None) == (int(progress[f"{agent}_steps"]) <= 50)  # 40 heat-up steps, 10 untimed updates
+        assert seconds is None or 0 < seconds < 10
+
+
+def test_compiled_losses_train_like_the_eager_ones(tmp_path):
+    common = ["task=peg_insertion_insert", "algo=ours", "total_steps=150", "eval_every=150", "checkpoint_every=150"]
+    eager = train.train(config(tmp_path / "eager", *common))
+    compiled = train.train(config(tmp_path / "compiled", *common, "speed.compile=[forward,reset]"))
+    assert compiled["finished"] and compiled["steps"] == 150
+    # the same data and the same arithmetic up to rounding: the same episodes early in training
+    same = ("manual_resets", "triggered_resets", "reset_episodes")
+    assert {k: compiled[k] for k in same} == {k: eager[k] for k in same}
+    a, b = rows(tmp_path / "eager" / "progress.csv")[-1], rows(tmp_path / "compiled" / "progress.csv")[-1]
+    for key in ("loss_forward_critic", "loss_reset_critic", "loss_reset_actor"):
+        assert float(a[key]) == pytest.approx(float(b[key]), rel=1e-3, abs=1e-5)
 
 
 @pytest.mark.parametrize("algo", ["ours", "lnt"])
@@ -122,6 +139,7 @@ def test_a_crash_while_checkpointing_keeps_the_previous_checkpoint(tmp_path):
         (["algo.name=sac"], "unknown algorithm 'sac'"),
         (["resume=true"], "no complete checkpoint"),
         (["total_steps=0"], "total_steps must be a positive integer"),
+        (["speed.compile=[backward]"], "speed.compile must be a list of agents among forward, reset"),
     ],
 )
 def test_bad_configs_fail_before_training(tmp_path, overrides, message):

@@ -51,6 +51,37 @@ def reduce_members(values: torch.Tensor, reduction: str = "mean") -> torch.Tenso
     raise ValueError(f"reduction must be one of {MEMBER_REDUCTIONS}, got {reduction!r}.")
 
 
+def _row_split(members: int, rows: int, device: torch.device) -> int:
+    """How many row blocks to cut each member's rows into so that a batched product divides evenly.
+
+    On CPU, a batched matrix product shares its batch entries out among the threads; with K = 5
+    members on 2 threads one thread does 3 products and the other 2. Cutting every member's rows in
+    ``s`` blocks makes ``K * s`` entries that divide evenly (at least 64 rows a block).
+    """
+    if device.type != "cpu" or torch.compiler.is_compiling():
+        return 1
+    threads = torch.get_num_threads()
+    if threads <= 1 or members % threads == 0 or members >= 4 * threads:
+        return 1
+    split = threads // math.gcd(members, threads)
+    return split if rows % split == 0 and rows // split >= 64 else 1
+
+
+def _members_linear(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor) -> torch.Tensor:
+    """``x[i] @ weight[i] + bias[i]`` for every member ``i``: [M, N, d] x [M, d, h] -> [M, N, h]."""
+    members, rows, width = x.shape
+    split = _row_split(members, rows, x.device)
+    if split == 1:
+        return torch.baddbmm(bias.unsqueeze(-2), x, weight)
+    blocks = members * split
+    out = torch.baddbmm(
+        bias.unsqueeze(1).expand(members, split, bias.shape[-1]).reshape(blocks, 1, bias.shape[-1]),
+        x.reshape(blocks, rows // split, width),
+        weight.unsqueeze(1).expand(members, split, *weight.shape[1:]).reshape(blocks, *weight.shape[1:]),
+    )
+    return out.view(members, rows, -1)
+
+
 def _xavier_uniform_(weight: torch.Tensor, fan_in: int, fan_out: int) -> None:
     bound = math.sqrt(6.0 / (fan_in + fan_out))
     with torch.no_grad():
@@ -180,13 +211,44 @@ class EnsembleValueOperator(TensorDictModuleBase):
                     else:
                         bias.zero_()
 
-    def _layers(self, prefix: str) -> tuple[list[torch.Tensor], list[torch.Tensor], torch.Tensor]:
-        weights = [getattr(self, f"{prefix}weight_{i}") for i in range(self.num_layers)]
-        biases = [getattr(self, f"{prefix}bias_{i}") for i in range(self.num_layers)]
-        return weights, biases, getattr(self, f"{prefix}action_weight")
+    def layer_tensors(
+        self, params: TensorDictBase | None = None, prefix: str = ""
+    ) -> tuple[list[torch.Tensor], list[torch.Tensor], torch.Tensor]:
+        """The stacked weights, biases and action weight of the trained (``prefix=""``) or prior
+        (``prefix="prior_"``) members, read from ``params`` (a tensordict of this module's parameters
+        and buffers, such as a loss module's functional or target copy) or from the module itself."""
+        get = (lambda name: getattr(self, name)) if params is None else params.get
+        weights = [get(f"{prefix}weight_{i}") for i in range(self.num_layers)]
+        biases = [get(f"{prefix}bias_{i}") for i in range(self.num_layers)]
+        return weights, biases, get(f"{prefix}action_weight")
 
     @staticmethod
+    def _trunk(obs: torch.Tensor, weights: list[torch.Tensor], biases: list[torch.Tensor]) -> torch.Tensor:
+        """The state-only part of M stacked members on shared [N, d] observations: layer 0 and the
+        state half of layer 1 with its bias, before the action joins. Returns [M, N, h1]."""
+        members = weights[0].shape[0]
+        x = obs.unsqueeze(0).expand(members, *obs.shape)
+        hidden = torch.baddbmm(biases[0].unsqueeze(-2), x, weights[0]).relu_()
+        return _members_linear(hidden, weights[1], biases[1])
+
+    @staticmethod
+    def _head(
+        trunk: torch.Tensor,
+        action: torch.Tensor,
+        weights: list[torch.Tensor],
+        biases: list[torch.Tensor],
+        action_weight: torch.Tensor,
+    ) -> torch.Tensor:
+        """The rest of M members from their trunk output [M, N, h1] and shared [N, a] actions: [M, N] logits."""
+        members = trunk.shape[0]
+        hidden = torch.baddbmm(trunk, action.unsqueeze(0).expand(members, *action.shape), action_weight)
+        for i in range(2, len(weights)):
+            hidden = _members_linear(hidden.relu_(), weights[i], biases[i])
+        return hidden.squeeze(-1)
+
+    @classmethod
     def _members_forward(
+        cls,
         obs: torch.Tensor,
         action: torch.Tensor,
         weights: list[torch.Tensor],
@@ -194,26 +256,9 @@ class EnsembleValueOperator(TensorDictModuleBase):
         action_weight: torch.Tensor,
     ) -> torch.Tensor:
         """Runs M stacked members on the same [N, *] inputs; returns [M, N] logits."""
-        hidden = obs
-        last = len(weights) - 1
-        for i, (weight, bias) in enumerate(zip(weights, biases)):
-            hidden = torch.matmul(hidden, weight) + bias.unsqueeze(-2)
-            if i == 1:
-                hidden = hidden + torch.matmul(action, action_weight)
-            if i < last:
-                hidden = torch.relu(hidden)
-        return hidden.squeeze(-1)
+        return cls._head(cls._trunk(obs, weights, biases), action, weights, biases, action_weight)
 
-    def logits(self, observation: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
-        """Per-member logits for a batch of (observation, action) pairs.
-
-        Args:
-            observation (Tensor): ``[*batch, observation_dim]``.
-            action (Tensor): ``[*batch, action_dim]``.
-
-        Returns:
-            ``[*batch, K]`` logits ``f_i + beta * g_i``.
-        """
+    def _check_inputs(self, observation: torch.Tensor, action: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         if observation.shape[-1:] != (self.observation_dim,):
             raise ValueError(
                 f"EnsembleValueOperator expects observations of size {self.observation_dim} in the last "
@@ -224,26 +269,42 @@ class EnsembleValueOperator(TensorDictModuleBase):
                 f"EnsembleValueOperator expects actions of size {self.action_dim} in the last dimension, "
                 f"got shape {tuple(action.shape)}."
             )
-        batch = observation.shape[:-1]
-        if action.shape[:-1] != batch:
+        if action.shape[:-1] != observation.shape[:-1]:
             raise ValueError(
-                f"observation and action batch shapes differ: {tuple(batch)} vs {tuple(action.shape[:-1])}."
+                f"observation and action batch shapes differ: {tuple(observation.shape[:-1])} vs {tuple(action.shape[:-1])}."
             )
         obs = observation.reshape(-1, self.observation_dim)
-        act = action.reshape(-1, self.action_dim).to(obs.dtype)
+        return obs, action.reshape(-1, self.action_dim).to(obs.dtype)
+
+    def logits(
+        self, observation: torch.Tensor, action: torch.Tensor, params: TensorDictBase | None = None
+    ) -> torch.Tensor:
+        """Per-member logits for a batch of (observation, action) pairs.
+
+        Args:
+            observation (Tensor): ``[*batch, observation_dim]``.
+            action (Tensor): ``[*batch, action_dim]``.
+            params (TensorDictBase, optional): the parameters and buffers to use instead of the
+                module's own (for instance a loss module's target copy).
+
+        Returns:
+            ``[*batch, K]`` logits ``f_i + beta * g_i``.
+        """
+        batch = observation.shape[:-1]
+        obs, act = self._check_inputs(observation, action)
         k = self.num_members
-        weights, biases, action_weight = self._layers("")
+        weights, biases, action_weight = self.layer_tensors(params)
         if not self.has_prior:
             out = self._members_forward(obs, act, weights, biases, action_weight)
         elif torch.is_grad_enabled():
             # Separate prior pass: autograd then computes no weight gradients for the frozen half.
             out = self._members_forward(obs, act, weights, biases, action_weight)
-            p_weights, p_biases, p_action_weight = self._layers("prior_")
+            p_weights, p_biases, p_action_weight = self.layer_tensors(params, "prior_")
             prior = self._members_forward(obs, act, p_weights, p_biases, p_action_weight)
             out = out + self.prior_scale * prior
         else:
             # Without gradients, trained and prior members run as one stack of 2K.
-            p_weights, p_biases, p_action_weight = self._layers("prior_")
+            p_weights, p_biases, p_action_weight = self.layer_tensors(params, "prior_")
             stacked = self._members_forward(
                 obs,
                 act,
@@ -254,7 +315,50 @@ class EnsembleValueOperator(TensorDictModuleBase):
             out = stacked[:k] + self.prior_scale * stacked[k:]
         return out.transpose(0, 1).reshape(*batch, k)
 
-    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+    def paired_logits(
+        self,
+        observation: torch.Tensor,
+        action: torch.Tensor,
+        policy_action: torch.Tensor,
+        start: int,
+        params: TensorDictBase | None = None,
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Logits of ``(observation, action)`` and of ``(observation[start:], policy_action)`` in one pass.
+
+        The state part of every member (layer 0 and the state half of layer 1: almost all of the
+        work) is computed once for both. The first result carries gradient to the trained
+        parameters (as :meth:`logits`); the second carries gradient to ``policy_action`` only, the
+        classifier held fixed: what an actor loss needs.
+
+        Args:
+            observation (Tensor): ``[N, observation_dim]``.
+            action (Tensor): ``[N, action_dim]``.
+            policy_action (Tensor): ``[N - start, action_dim]``, actions for the last rows.
+            start (int): the first row the policy actions belong to.
+            params (TensorDictBase, optional): as in :meth:`logits`.
+
+        Returns:
+            ``[N, K]`` and ``[N - start, K]`` logits.
+        """
+        obs, act = self._check_inputs(observation, action)
+        policy_obs, policy_act = self._check_inputs(observation[start:], policy_action)
+        weights, biases, action_weight = self.layer_tensors(params)
+        trunk = self._trunk(obs, weights, biases)
+        out = self._head(trunk, act, weights, biases, action_weight)
+        held = [w.detach() for w in weights], [b.detach() for b in biases], action_weight.detach()
+        policy = self._head(trunk[:, start:].detach(), policy_act, *held)
+        if self.has_prior:
+            p_weights, p_biases, p_action_weight = self.layer_tensors(params, "prior_")
+            with torch.no_grad():
+                prior_trunk = self._trunk(obs, p_weights, p_biases)
+                prior = self._head(prior_trunk, act, p_weights, p_biases, p_action_weight)
+            out = out + self.prior_scale * prior
+            policy_prior = self._head(prior_trunk[:, start:], policy_act, p_weights, p_biases, p_action_weight)
+            policy = policy + self.prior_scale * policy_prior
+        return out.transpose(0, 1), policy.transpose(0, 1)
+
+    def observation_from(self, tensordict: TensorDictBase) -> torch.Tensor:
+        """The observation entries this module reads, joined along the last dimension."""
         observations = []
         for key in self.in_keys[:-1]:
             value = tensordict.get(key, None)
@@ -264,13 +368,16 @@ class EnsembleValueOperator(TensorDictModuleBase):
                     f"{sorted(map(str, tensordict.keys(True, True)))}."
                 )
             observations.append(value)
+        return observations[0] if len(observations) == 1 else torch.cat(observations, -1)
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        observation = self.observation_from(tensordict)
         action = tensordict.get(self.in_keys[-1], None)
         if action is None:
             raise KeyError(
                 f"EnsembleValueOperator needs the action key {self.in_keys[-1]!r}; the tensordict has "
                 f"{sorted(map(str, tensordict.keys(True, True)))}."
             )
-        observation = observations[0] if len(observations) == 1 else torch.cat(observations, -1)
         tensordict.set(self.out_keys[0], self.logits(observation, action))
         return tensordict
 

@@ -198,10 +198,6 @@ class RCELoss(LossModule):
             raise KeyError(f"RCELoss needs the state key(s) {missing} under {where} ({what}).")
         return data.select(*self._state_keys)
 
-    def _classifier_logits(self, params: TensorDictBase, data: TensorDictBase) -> torch.Tensor:
-        with params.to_module(self.classifier_network):
-            return self.classifier_network(data).get(self.tensor_keys.state_action_logit)
-
     def _act(self, data: TensorDictBase) -> torch.Tensor:
         with self.actor_network_params.to_module(self.actor_network):
             return self.actor_network(data.select(*self._actor_in_keys)).get(self.tensor_keys.action)
@@ -211,8 +207,7 @@ class RCELoss(LossModule):
         replay = tensordict.reshape(-1) if tensordict.batch_dims != 1 else tensordict
         with torch.no_grad():
             states = self._target_states(replay)
-            states.set(self.tensor_keys.action, self._act(states))
-            return self._labels_from(states, replay.shape[0])
+            return self._labels_from(self.classifier_network.observation_from(states), self._act(states), replay.shape[0])
 
     def _target_states(self, replay: TensorDictBase) -> TensorDictBase:
         """``s_{t+1}`` (and ``s_{t+n}`` when n > 1) stacked, for one actor and one target pass."""
@@ -221,10 +216,11 @@ class RCELoss(LossModule):
             states.append(self._require(replay, self.tensor_keys.nstep_state, "s_{t+n}"))
         return torch.cat(states, 0)
 
-    def _labels_from(self, target_states: TensorDictBase, batch: int) -> tuple[torch.Tensor, torch.Tensor]:
-        """Labels and weights from ``s_{t+1}`` (and ``s_{t+n}``) already paired with the policy's actions."""
+    def _labels_from(self, observation: torch.Tensor, action: torch.Tensor, batch: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """Labels and weights from ``s_{t+1}`` (and ``s_{t+n}``) stacked, with the policy's actions there."""
         gamma = self.gamma
-        ratio = success_probability(self._classifier_logits(self.target_classifier_network_params, target_states))
+        logits = self.classifier_network.logits(observation, action, self.target_classifier_network_params)
+        ratio = success_probability(logits)
         w1 = ratio[:batch]
         label = gamma * w1 / (1.0 + gamma * w1)
         if self.n_steps > 1:
@@ -247,21 +243,27 @@ class RCELoss(LossModule):
         if action is None:
             raise KeyError(f"RCELoss needs the action key {keys.action!r} at the root of its input.")
         examples = self._require(replay, keys.example_state, "success examples s*")
+        if examples.shape[0] != batch:
+            raise ValueError(f"RCELoss needs one success example per replay row: got {examples.shape[0]} for {batch}.")
         gamma = self.gamma
+        net = self.classifier_network
 
         with torch.no_grad():
             # One actor pass for s_{t+1}, s_{t+n} and s*; one target-classifier pass for the first two.
             targets = self._target_states(replay)
             num_targets = targets.shape[0]
             acting = torch.cat([targets, examples], 0)
-            acting.set(keys.action, self._act(acting))
-            label, weight = self._labels_from(acting[:num_targets], batch)
-            examples = acting[num_targets:]
+            acting_obs = net.observation_from(acting)
+            acting_actions = self._act(acting)
+            label, weight = self._labels_from(acting_obs[:num_targets], acting_actions[:num_targets], batch)
 
-        # Classifier loss: examples and replay rows in one pass.
-        replay_in = states.clone(False)
-        replay_in.set(keys.action, action)
-        logits = self._classifier_logits(self.classifier_network_params, torch.cat([examples, replay_in], 0))
+        # Classifier loss on the examples and the replay rows; actor loss on (s_t, pi(s_t)). The
+        # classifier's state part is computed once for both (EnsembleValueOperator.paired_logits).
+        observation = torch.cat([acting_obs[num_targets:], net.observation_from(states)], 0)
+        classifier_action = torch.cat([acting_actions[num_targets:], action.to(acting_actions.dtype)], 0)
+        logits, actor_logits = net.paired_logits(
+            observation, classifier_action, self._act(states), batch, self.classifier_network_params
+        )
         example_logits, replay_logits = logits[:batch], logits[batch:]
         loss_examples = (1.0 - gamma) * F.binary_cross_entropy_with_logits(
             example_logits, torch.full_like(example_logits, 0.5), reduction="none"
@@ -273,11 +275,7 @@ class RCELoss(LossModule):
             reduction="none",
         ).mean(0)
         loss_classifier = (loss_examples + loss_replay).sum()
-
         # Actor loss: maximise the ensemble minimum of C(s, pi(s)); classifier parameters held out.
-        actor_in = states.clone(False)
-        actor_in.set(keys.action, self._act(states))
-        actor_logits = self._classifier_logits(self.classifier_network_params.detach(), actor_in)
         loss_actor = -torch.sigmoid(actor_logits).amin(-1).mean()
 
         with torch.no_grad():

@@ -1,0 +1,296 @@
+"""Whole-loop throughput on peg-insertion (insert) at the paper's settings, against a stock-TorchRL loop.
+
+    python benchmarks/bench_loop.py                  # 2000 steps per loop, about six minutes on 2 cores
+    python benchmarks/bench_loop.py --steps 600      # a shorter look
+
+Runs, one after the other in the same process:
+
+1. **ours**: the training recipe itself (``recipes/train.py``'s ``train``) with the paper's
+   settings (400-300 networks, forward batch 64, reset batch 256 + 256 examples, K = 5 classifiers
+   with priors, n = 10, one update per environment step, the reset trigger checked at every forward
+   step), evaluation and checkpoints pushed past the end of the run.
+2. **stock**: the same work assembled only from stock TorchRL / tensordict parts: the forward
+   agent is torchrl's ``DDPGLoss`` on an MLP actor and a ``DdpgMlpQNet`` critic (the action joins
+   after the first layer, as in ours); the reset classifiers are ``DdpgMlpQNet`` members stacked
+   with ``TensorDict.from_modules`` and evaluated with ``torch.vmap``, their randomized priors a
+   second stack evaluated separately; the RCE label, classifier and actor losses written as the
+   method states them; ``TensorDictReplayBuffer``s; torch's default Adam; the trigger evaluated at
+   every forward step; the same horizons, heat-up, success check and manual resets.
+
+Both record the mean wall time of a step of each phase once that phase's agent updates (env step,
+policy, trigger, buffer, update). The loops decide their own episode boundaries, so their forward
+shares differ a little; the ratio is therefore given at one common mix (ours' forward share):
+``time per step = share * forward step + (1 - share) * reset step``, beside the raw steps/s of each
+run. Writes ``benchmarks/results/loop-<date>.json`` and ``.md``.
+"""
+from __future__ import annotations
+
+import argparse
+import copy
+import json
+import platform
+import sys
+import tempfile
+import time
+from datetime import datetime, timezone
+from pathlib import Path
+
+import torch
+from tensordict import TensorDict, TensorDictParams
+from tensordict.nn import TensorDictModule, TensorDictSequential
+from torch import nn
+from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
+from torchrl.envs.utils import step_mdp
+from torchrl.modules import MLP, DdpgMlpQNet, OrnsteinUhlenbeckProcessModule, TanhModule, ValueOperator
+from torchrl.objectives import DDPGLoss, SoftUpdate
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "recipes"))
+sys.path.insert(0, str(ROOT / "benchmarks"))
+
+from bench_updates import machine, paper_config  # noqa: E402
+from torchrl_reset_envs import make_env  # noqa: E402
+
+TASK = "peg_insertion_insert"
+
+
+def run_ours(steps: int, heat_up: int, seed: int) -> dict:
+    import train
+
+    with tempfile.TemporaryDirectory() as run_dir:
+        cfg = paper_config("ours", total_steps=steps, heat_up=heat_up, seed=seed, run_dir=run_dir, progress_bar=False,
+                           eval_every=10 * steps, checkpoint_every=10 * steps, log_every=steps)
+        summary = train.train(cfg)
+    return {"steps": summary["steps"], "seconds": summary["seconds"], "forward_share": summary["forward_share"],
+            "step_seconds": summary["step_seconds"], "manual_resets": summary["manual_resets"],
+            "triggered_resets": summary["triggered_resets"]}
+
+
+# ----------------------------------------------------------------------------------- the stock loop
+class StockReset:
+    """The RCE reset agent from stock parts: vmapped DdpgMlpQNet members, priors evaluated separately."""
+
+    def __init__(self, cfg, obs_dim: int, action_spec):
+        act_dim = action_spec.shape[-1]
+        k, (h0, h1) = int(cfg.algo.num_members), tuple(cfg.hidden_sizes)
+        self.gamma, self.n, self.beta = float(cfg.gamma), int(cfg.algo.n_steps), float(cfg.algo.prior_scale)
+        self.tau = float(cfg.tau)
+
+        def member():
+            return DdpgMlpQNet(
+                mlp_net_kwargs_net1={"in_features": obs_dim, "out_features": h0, "activation_class": nn.ReLU},
+                mlp_net_kwargs_net2={"in_features": h0 + act_dim, "num_cells": [h1], "activation_class": nn.ReLU},
+            )
+
+        self.params = TensorDictParams(TensorDict.from_modules(*[member() for _ in range(k)]).data.clone())
+        self.priors = TensorDict.from_modules(*[member() for _ in range(k)]).data  # never trained
+        self.target = self.params.data.clone()
+        self.base = member().to("meta")
+        self.actor = stock_actor(obs_dim, action_spec, cfg.hidden_sizes)
+        self.optimizer = torch.optim.Adam([{"params": list(self.actor.parameters()), "lr": cfg.reset.actor_lr},
+                                           {"params": list(self.params.values(True, True)), "lr": cfg.reset.critic_lr}])
+
+        def call(params, obs, act):
+            with params.to_module(self.base):
+                return self.base(obs, act).squeeze(-1)
+
+        self.vmapped = torch.vmap(call, (0, None, None))
+
+    def logits(self, params, obs, act):
+        """[N, K] logits: the members, then their priors in a second, separate evaluation."""
+        return (self.vmapped(params, obs, act) + self.beta * self.vmapped(self.priors, obs, act)).transpose(0, 1)
+
+    def act(self, obs):
+        return self.actor(TensorDict(observation=obs, batch_size=obs.shape[:1]))["action"]
+
+    def success_probability(self, obs, act):
+        with torch.no_grad():
+            return torch.exp(self.logits(self.params.data, obs, act).clamp(max=0.0))
+
+    def update(self, batch: TensorDict, examples: torch.Tensor) -> None:
+        g, gn = self.gamma, self.gamma**self.n
+        s, a = batch["observation"], batch["action"]
+        with torch.no_grad():
+            s1, sn = batch["next", "observation"], batch["nstep", "observation"]
+            w1 = torch.exp(self.logits(self.target, s1, self.act(s1)).clamp(max=0.0))
+            wn = torch.exp(self.logits(self.target, sn, self.act(sn)).clamp(max=0.0))
+            y = (0.5 * (g * w1 / (1 + g * w1) + gn * wn / (1 + gn * wn))).amin(-1).clamp(max=0.5)
+            c = (y / (y + g * (1 - y))).clamp(0.0, 0.5)
+            weight = 1 + g * c / (1 - c)
+            example_action = self.act(examples)
+        example_logits = self.logits(self.params, examples, example_action)
+        replay_logits = self.logits(self.params, s, a)
+        bce = nn.functional.binary_cross_entropy_with_logits
+        loss_classifier = ((1 - g) * bce(example_logits, torch.full_like(example_logits, 0.5), reduction="none").mean(0)
+                           + bce(replay_logits, y.unsqueeze(-1).expand_as(replay_logits), weight=weight.unsqueeze(-1),
+                                 reduction="none").mean(0)).sum()
+        loss_actor = -torch.sigmoid(self.logits(self.params.detach(), s, self.act(s))).amin(-1).mean()
+        self.optimizer.zero_grad()
+        (loss_classifier + loss_actor).backward()
+        self.optimizer.step()
+        self.target.lerp_(self.params.data, self.tau)
+
+
+def stock_actor(obs_dim: int, action_spec, hidden_sizes) -> TensorDictSequential:
+    net = MLP(in_features=obs_dim, out_features=action_spec.shape[-1], num_cells=list(hidden_sizes), activation_class=nn.ReLU)
+    return TensorDictSequential(TensorDictModule(net, in_keys=["observation"], out_keys=["param"]),
+                                TanhModule(["param"], ["action"], spec=action_spec))
+
+
+class NStepWriter:
+    """Holds transitions until the state n steps later is known, then writes them with it under ``nstep``."""
+
+    def __init__(self, buffer: TensorDictReplayBuffer, n: int):
+        self.buffer, self.n, self.pending = buffer, n, []
+
+    def add(self, transition: TensorDict, episode_over: bool) -> None:
+        self.pending.append(transition)
+        while self.pending and (len(self.pending) >= self.n or episode_over):
+            first = self.pending.pop(0)
+            last = self.pending[min(self.n - 1, len(self.pending)) - 1] if self.pending and self.n > 1 else first
+            first.set("nstep", last.get("next").select("observation"))
+            self.buffer.add(first)
+
+
+def run_stock(steps: int, heat_up: int, seed: int) -> dict:
+    cfg = paper_config("ours", seed=seed)
+    torch.manual_seed(seed)
+    env = make_env(TASK, seed=seed)
+    obs_dim, spec = env.observation_spec["observation"].shape[-1], env.action_spec
+    h_f, h_r = int(cfg.task.forward_horizon), 2 * int(cfg.task.forward_horizon)
+    min_reset, threshold = int(cfg.reset.min_steps), float(cfg.task.p_thresh)
+
+    actor = stock_actor(obs_dim, spec, cfg.hidden_sizes)
+    critic = ValueOperator(DdpgMlpQNet(
+        mlp_net_kwargs_net1={"in_features": obs_dim, "out_features": cfg.hidden_sizes[0], "activation_class": nn.ReLU},
+        mlp_net_kwargs_net2={"in_features": cfg.hidden_sizes[0] + spec.shape[-1], "num_cells": [cfg.hidden_sizes[1]],
+                             "activation_class": nn.ReLU}), in_keys=["observation", "action"])
+    loss = DDPGLoss(actor, critic, delay_actor=True, delay_value=True)
+    loss.make_value_estimator(gamma=cfg.gamma)
+    optimizer = torch.optim.Adam([{"params": list(loss.actor_network_params.values(True, True)), "lr": cfg.forward.actor_lr},
+                                  {"params": list(loss.value_network_params.values(True, True)), "lr": cfg.forward.critic_lr}])
+    targets = SoftUpdate(loss, tau=cfg.tau)
+    reset = StockReset(cfg, obs_dim, spec)
+
+    def explore(policy):
+        return TensorDictSequential(policy, OrnsteinUhlenbeckProcessModule(
+            spec=spec.clone(), eps_init=1.0, eps_end=1.0, annealing_num_steps=1, theta=cfg.exploration.theta,
+            sigma=cfg.exploration.sigma, dt=cfg.exploration.dt))
+
+    forward_policy, reset_policy = explore(actor), explore(reset.actor)
+    forward_rb = TensorDictReplayBuffer(storage=LazyTensorStorage(cfg.forward.buffer_size), batch_size=cfg.forward.batch_size)
+    reset_rb = TensorDictReplayBuffer(storage=LazyTensorStorage(cfg.reset.buffer_size), batch_size=cfg.reset.batch_size)
+    example_rb = TensorDictReplayBuffer(storage=LazyTensorStorage(100_000), batch_size=cfg.reset.batch_size)
+    nstep = NStepWriter(reset_rb, int(cfg.algo.n_steps))
+
+    td = env.reset()
+    example_rb.add(td.select("observation").clone())
+    phase, in_phase = "forward", 0
+    counters = {"forward": 0, "reset": 0, "manual_resets": 0, "triggered_resets": 0}
+    step_time = {"forward": [0.0, 0], "reset": [0.0, 0]}
+    frames, start = 0, time.perf_counter()
+    last = start
+    while frames < steps:
+        td.set("is_init", torch.tensor([in_phase == 0]))
+        if phase == "forward":
+            with torch.no_grad():
+                td = forward_policy(td)
+            if reset.success_probability(td["observation"][None], td["action"][None]).mean() < threshold:
+                counters["triggered_resets"] += 1
+                phase, in_phase = "reset", 0
+                continue
+            td = env.step(td)
+            forward_rb.add(td.clone())
+            counters["forward"] += 1
+            if counters["forward"] > heat_up:
+                loss_td = loss(forward_rb.sample())
+                optimizer.zero_grad()
+                (loss_td["loss_actor"] + loss_td["loss_value"]).backward()
+                optimizer.step()
+                targets.step()
+            in_phase += 1
+            ended = in_phase >= h_f
+        else:
+            with torch.no_grad():
+                td = reset_policy(td)
+            td = env.step(td)
+            in_phase += 1
+            success = bool(td["next", "reset_success"]) and in_phase >= min_reset
+            ended = success or in_phase >= h_r
+            nstep.add(td.clone(), ended)
+            counters["reset"] += 1
+            if counters["reset"] > heat_up:
+                reset.update(reset_rb.sample(), example_rb.sample()["observation"])
+        frames += 1
+        now = time.perf_counter()
+        if counters[phase] > heat_up + 10:  # as the recipe: from the 11th update on
+            step_time[phase][0] += now - last
+            step_time[phase][1] += 1
+        last = now
+        td = step_mdp(td)
+        if ended:
+            if phase == "reset":
+                if not success:
+                    td = env.reset()
+                    counters["manual_resets"] += 1
+                example_rb.add(td.select("observation").clone())
+            phase, in_phase = ("reset" if phase == "forward" else "forward"), 0
+    seconds = time.perf_counter() - start
+    env.close()
+    return {"steps": frames, "seconds": round(seconds, 1), "forward_share": counters["forward"] / frames,
+            "step_seconds": {k: (t / n if n else None) for k, (t, n) in step_time.items()},
+            "manual_resets": counters["manual_resets"], "triggered_resets": counters["triggered_resets"]}
+
+
+def main(argv=None) -> dict:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--steps", type=int, default=2000, help="environment steps per loop")
+    parser.add_argument("--heat-up", type=int, default=300, help="steps per agent before its updates start")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results")
+    args = parser.parse_args(argv)
+    torch.set_num_threads(args.threads)
+
+    results = {}
+    for name, run in (("ours", run_ours), ("stock", run_stock)):
+        print(f"running {name} ({args.steps} steps)...", flush=True)
+        results[name] = run(args.steps, args.heat_up, args.seed)
+        torch.set_num_threads(args.threads)
+    share = results["ours"]["forward_share"]
+
+    def per_step(r):
+        f, s = r["step_seconds"]["forward"], r["step_seconds"]["reset"]
+        return share * f + (1 - share) * s
+
+    for r in results.values():
+        r["raw_steps_per_second"] = r["steps"] / r["seconds"]
+        r["steps_per_second_at_common_mix"] = 1.0 / per_step(r)
+    ratio = results["ours"]["steps_per_second_at_common_mix"] / results["stock"]["steps_per_second_at_common_mix"]
+    report = {"machine": machine(), "task": TASK, "steps": args.steps, "heat_up": args.heat_up, "common_forward_share": share,
+              "loops": results, "ratio": ratio, "target": "ratio >= 1.5", "met": ratio >= 1.5}
+
+    lines = [f"# Whole-loop throughput, {TASK}, paper settings ({report['machine']['date']})", "",
+             f"Machine: {report['machine']['cpu']}, {report['machine']['cores']} cores, {args.threads} torch threads; "
+             f"torch {torch.__version__}, Python {platform.python_version()}. {args.steps} steps per loop, "
+             f"updates after {args.heat_up} steps per agent.", "",
+             "| loop | raw steps/s | forward share | forward step (ms) | reset step (ms) | steps/s at a common mix |",
+             "|---|---|---|---|---|---|"]
+    for name, r in results.items():
+        lines.append(f"| {name} | {r['raw_steps_per_second']:.1f} | {r['forward_share']:.3f} | "
+                     f"{1000 * r['step_seconds']['forward']:.1f} | {1000 * r['step_seconds']['reset']:.1f} | "
+                     f"{r['steps_per_second_at_common_mix']:.1f} |")
+    lines += ["", f"Common mix: forward share {share:.3f}. Ratio ours / stock: **{ratio:.2f}x** "
+              f"(target >= 1.5x: {'met' if ratio >= 1.5 else 'NOT met'})."]
+    text = "\n".join(lines) + "\n"
+    print(text)
+    args.out.mkdir(parents=True, exist_ok=True)
+    stamp = datetime.now(timezone.utc).strftime("%Y%m%d-%H%M")
+    (args.out / f"loop-{stamp}.json").write_text(json.dumps(report, indent=2))
+    (args.out / f"loop-{stamp}.md").write_text(text)
+    print(f"wrote {args.out / f'loop-{stamp}.md'} and .json")
+    return report
+
+
+if __name__ == "__main__":
+    main()
