@@ -17,7 +17,7 @@ Runs, one after the other in the same process:
    method states them; ``TensorDictReplayBuffer``s; torch's default Adam; the trigger evaluated at
    every forward step; the same horizons, heat-up, success check and manual resets.
 
-Both record the mean wall time of a step of each phase once that phase's agent updates (env step,
+Both record the mean wall time of a step of each phase once both agents made 10 updates (env step,
 policy, trigger, buffer, update). The loops decide their own episode boundaries, so their forward
 shares differ a little; the ratio is therefore given at one common mix (ours' forward share):
 ``time per step = share * forward step + (1 - share) * reset step``, beside the raw steps/s of each
@@ -26,7 +26,6 @@ run. Writes ``benchmarks/results/loop-<date>.json`` and ``.md``.
 from __future__ import annotations
 
 import argparse
-import copy
 import json
 import platform
 import sys
@@ -223,7 +222,7 @@ def run_stock(steps: int, heat_up: int, seed: int) -> dict:
                 reset.update(reset_rb.sample(), example_rb.sample()["observation"])
         frames += 1
         now = time.perf_counter()
-        if counters[phase] > heat_up + 10:  # as the recipe: from the 11th update on
+        if min(counters["forward"], counters["reset"]) > heat_up + 10:  # as the recipe: once both made 10 updates
             step_time[phase][0] += now - last
             step_time[phase][1] += 1
         last = now

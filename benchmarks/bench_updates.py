@@ -8,7 +8,7 @@ Measures, in one run:
 2. one whole update, as the training recipe runs it, with its speed settings (fused Adam, freed
    memory kept): the replay sample from the recipe's buffers (and the success-example sample),
    the loss, backward, the optimizer step and the target update, for the forward DDPG agent
-   (batch 64; eager and through ``torch.compile``, the recipe's default), the RCE reset agent
+   (batch 64; eager, the recipe's default, and through ``torch.compile``), the RCE reset agent
    (K = 5, batch 256 + 256 examples, n = 10, priors) and the LNT reset agent (K = 20, batch 256),
    with the networks of the paper (400-300) on peg-insertion's sizes (14 observations, 7 actions).
    Beside each: its FLOPs (counted with ``torch.utils.flop_counter``'s formulas while it runs),
@@ -230,12 +230,13 @@ def main(argv=None) -> dict:
             scaling.append({"members": members, "batch": batch, **result})
 
     by = {(r["members"], r["batch"]): r["median_ms"] for r in scaling}
-    forward, ours = rows[1], rows[2]  # the recipe's defaults: forward loss compiled, reset loss eager
+    forward, compiled, ours = rows[0], rows[1], rows[2]  # the recipe's default runs both losses eagerly
     targets = [
         ("reset RCE update <= 35 ms", ours["median_ms"], ours["median_ms"] <= 35.0),
         ("reset RCE update <= 2x its FLOP-limit time", ours["median_ms"] / ours["flop_limit_ms"],
          ours["median_ms"] <= 2 * ours["flop_limit_ms"]),
-        ("forward update <= 3 ms (compiled, the recipe's default)", forward["median_ms"], forward["median_ms"] <= 3.0),
+        ("forward update <= 3 ms (eager, the recipe's default)", forward["median_ms"], forward["median_ms"] <= 3.0),
+        ("forward update <= 3 ms (torch.compile)", compiled["median_ms"], compiled["median_ms"] <= 3.0),
         ("K = 20 costs < 4x K = 5 (batch 256)", by[(20, 256)] / by[(5, 256)], by[(20, 256)] < 4 * by[(5, 256)]),
     ]
     report = {"machine": machine(), "matmul_gflops": rate / 1e9, "updates": rows, "scaling": scaling,

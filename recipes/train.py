@@ -195,7 +195,8 @@ def train(cfg: DictConfig) -> dict:
         }
 
     # wall time of the steps of each phase once its agent updates (env step, policy, trigger, buffer, update),
-    # from its 11th update on: the first ones include one-off costs (the compile pause with speed.compile)
+    # once both agents made 10 updates: the first ones include one-off costs (with speed.compile, the
+    # compile pause and a recompile of the forward loss when the reset agent's first update runs)
     step_time = history.setdefault("step_time", {"forward": [0.0, 0], "reset": [0.0, 0]})
     warm_up_updates = 10
     bar = tqdm(total=int(cfg.total_steps), initial=collector.frames, desc=f"{cfg.task.name}/{cfg.algo.name}",
@@ -208,7 +209,7 @@ def train(cfg: DictConfig) -> dict:
             batch = batch.to(cfg.device)
             phase = DualCollector.phase_of(batch)
             updating = collector.counters[f"{phase}_steps"] > heat_up
-            timed = collector.counters[f"{phase}_steps"] > heat_up + warm_up_updates
+            timed = min(collector.counters["forward_steps"], collector.counters["reset_steps"]) > heat_up + warm_up_updates
             if phase == "forward":
                 forward_rb.extend(batch)
                 if updating and fits("forward"):

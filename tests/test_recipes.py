@@ -57,10 +57,9 @@ def test_every_task_and_algorithm_trains_for_a_few_hundred_steps(tmp_path, task,
             assert progress[f"loss_{agent}_critic"] not in ("", "nan")
     assert (tmp_path / "checkpoints" / "latest").read_text() == "step_0000000200"
     assert (tmp_path / "config.yaml").exists() and any((tmp_path / "logs").rglob("*.csv"))
-    for agent in ("forward", "reset"):  # mean wall time of a step once that agent updates
-        seconds = saved["step_seconds"][agent]
-        assert (seconds is None) == (int(progress[f"{agent}_steps"]) <= 50)  # 40 heat-up steps, 10 untimed updates
-        assert seconds is None or 0 < seconds < 10
+    if min(int(progress["forward_steps"]), int(progress["reset_steps"])) > 60:  # timed once both made 10 updates
+        for agent in ("forward", "reset"):
+            assert 0 < saved["step_seconds"][agent] < 10
 
 
 def test_compiled_losses_train_like_the_eager_ones(tmp_path):
