@@ -26,12 +26,10 @@ run. Writes ``benchmarks/results/loop-<date>.json`` and ``.md``.
 from __future__ import annotations
 
 import argparse
-import json
 import platform
 import sys
 import tempfile
 import time
-from datetime import datetime, timezone
 from pathlib import Path
 
 import torch
@@ -47,7 +45,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "recipes"))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
-from bench_updates import machine, paper_config  # noqa: E402
+from bench_updates import machine, paper_config, write_results  # noqa: E402
 from torchrl_reset_envs import make_env  # noqa: E402
 
 TASK = "peg_insertion_insert"
@@ -218,7 +216,7 @@ def run_stock(steps: int, heat_up: int, seed: int) -> dict:
             ended = success or in_phase >= h_r
             nstep.add(td.clone(), ended)
             counters["reset"] += 1
-            if counters["reset"] > heat_up:
+            if counters["reset"] > heat_up and len(reset_rb):
                 reset.update(reset_rb.sample(), example_rb.sample()["observation"])
         frames += 1
         now = time.perf_counter()
@@ -257,6 +255,9 @@ def main(argv=None) -> dict:
         results[name] = run(args.steps, args.heat_up, args.seed)
         torch.set_num_threads(args.threads)
     share = results["ours"]["forward_share"]
+    for name, r in results.items():
+        if None in r["step_seconds"].values():
+            raise SystemExit(f"{name}: too few steps for both agents to make 10 timed updates; raise --steps or lower --heat-up.")
 
     def per_step(r):
         f, s = r["step_seconds"]["forward"], r["step_seconds"]["reset"]
@@ -281,13 +282,7 @@ def main(argv=None) -> dict:
                      f"{r['steps_per_second_at_common_mix']:.1f} |")
     lines += ["", f"Common mix: forward share {share:.3f}. Ratio ours / stock: **{ratio:.2f}x** "
               f"(target >= 1.5x: {'met' if ratio >= 1.5 else 'NOT met'})."]
-    text = "\n".join(lines) + "\n"
-    print(text)
-    args.out.mkdir(parents=True, exist_ok=True)
-    stamp = datetime.now(timezone.utc).strftime("%Y%m%d-%H%M")
-    (args.out / f"loop-{stamp}.json").write_text(json.dumps(report, indent=2))
-    (args.out / f"loop-{stamp}.md").write_text(text)
-    print(f"wrote {args.out / f'loop-{stamp}.md'} and .json")
+    write_results(args.out, "loop", report, "\n".join(lines) + "\n")
     return report
 
 

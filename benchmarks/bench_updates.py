@@ -198,6 +198,16 @@ def machine() -> dict:
             "torch": torch.__version__, "torchrl": torchrl.__version__, "date": datetime.now(timezone.utc).isoformat(timespec="seconds")}
 
 
+def write_results(folder: Path, name: str, report: dict, text: str) -> None:
+    """Prints the markdown table and writes it with the JSON report as ``<name>-<UTC date>.md/.json``."""
+    print(text)
+    folder.mkdir(parents=True, exist_ok=True)
+    stamp = datetime.now(timezone.utc).strftime("%Y%m%d-%H%M")
+    (folder / f"{name}-{stamp}.json").write_text(json.dumps(report, indent=2))
+    (folder / f"{name}-{stamp}.md").write_text(text)
+    print(f"wrote {folder / f'{name}-{stamp}.md'} and .json")
+
+
 def main(argv=None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--quick", action="store_true", help="fewer repetitions")
@@ -256,13 +266,7 @@ def main(argv=None) -> dict:
     lines += ["", "| target | measured | met |", "|---|---|---|"]
     for t, v, ok in targets:
         lines.append(f"| {t} | {v:.2f} | {'yes' if ok else 'NO'} |")
-    text = "\n".join(lines) + "\n"
-    print(text)
-    args.out.mkdir(parents=True, exist_ok=True)
-    stamp = datetime.now(timezone.utc).strftime("%Y%m%d-%H%M")
-    (args.out / f"updates-{stamp}.json").write_text(json.dumps(report, indent=2))
-    (args.out / f"updates-{stamp}.md").write_text(text)
-    print(f"wrote {args.out / f'updates-{stamp}.md'} and .json")
+    write_results(args.out, "updates", report, "\n".join(lines) + "\n")
     return report
 
 
