@@ -132,7 +132,7 @@ def retain_freed_memory() -> bool:
 
 
 def make_adam(cfg: DictConfig, groups: list[dict]) -> torch.optim.Optimizer:
-    """Adam over parameter groups; with ``optim.fused`` the fused kernels (one pass over all
+    """Adam over parameter groups; with ``speed.fused_adam`` the fused kernels (one pass over all
     parameters, the same update rule) where this torch supports them for these parameters."""
     fused = bool(OmegaConf.select(cfg, "speed.fused_adam", default=False))
     if fused:
