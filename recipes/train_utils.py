@@ -13,7 +13,7 @@ from typing import Any, Callable
 
 import torch
 from omegaconf import DictConfig, OmegaConf
-from tensordict.nn import TensorDictModule, TensorDictSequential
+from tensordict.nn import TensorDictModuleBase, TensorDictSequential
 from torch import nn
 from torchrl.data import LazyTensorStorage, ReplayBuffer
 from torchrl.envs import TransformedEnv
@@ -88,6 +88,47 @@ def validate(cfg: DictConfig) -> None:
 
 
 # ------------------------------------------------------------------------------------------ agents
+class TensorModule(TensorDictModuleBase):
+    """``tensordict[out_key] = module(tensordict[in_key])``: what ``TensorDictModule`` does for one
+    tensor in and one out, written with a single ``set``.
+
+    tensordict 0.14's ``TensorDictModule`` passes each output through ``TensorDict.from_any``,
+    which for a plain tensor searches the import path for pandas on every call: about 0.2 ms
+    measured on the 2-core machines, more than a batch-1 policy's arithmetic, paid by every policy
+    call of the loop and twice per forward update.
+    """
+
+    def __init__(self, module: nn.Module, in_key: str, out_key: str) -> None:
+        super().__init__()
+        self.module = module
+        self.in_keys = [in_key]
+        self.out_keys = [out_key]
+
+    def forward(self, tensordict):
+        tensordict.set(self.out_keys[0], self.module(tensordict.get(self.in_keys[0])))
+        return tensordict
+
+
+class FusedSoftUpdate(SoftUpdate):
+    """torchrl's :class:`~torchrl.objectives.SoftUpdate` (``target <- (1 - tau) target + tau source``)
+    with all target tensors moved by one ``torch._foreach_lerp_`` instead of one ``lerp_`` each
+    (0.23 ms -> 0.03 ms per step for the forward agent on the 2-core machines)."""
+
+    def step(self) -> None:
+        if not self.initialized:
+            return super().step()  # raises torchrl's message
+        pairs = self.__dict__.get("_fused_pairs")
+        if pairs is None:
+            sources, targets = [], []
+            for key, source in self._sources.items(True, True):
+                key = (key,) if isinstance(key, str) else key
+                sources.append(source)
+                targets.append(self._targets.get(("target_" + key[0], *key[1:])))
+            pairs = self.__dict__["_fused_pairs"] = (sources, targets)
+        with torch.no_grad():
+            torch._foreach_lerp_(pairs[1], pairs[0], 1.0 - self.eps)
+
+
 def make_actor(obs_dim: int, action_spec, hidden_sizes) -> TensorDictSequential:
     """The paper's policy: a 400-300 ReLU MLP, Xavier-uniform weights and zero biases, tanh onto the action box."""
     layers, width = [], obs_dim
@@ -101,7 +142,7 @@ def make_actor(obs_dim: int, action_spec, hidden_sizes) -> TensorDictSequential:
             nn.init.xavier_uniform_(layer.weight)
             nn.init.zeros_(layer.bias)
     return TensorDictSequential(
-        TensorDictModule(net, in_keys=["observation"], out_keys=["action_preactivation"]),
+        TensorModule(net, "observation", "action_preactivation"),
         TanhModule(["action_preactivation"], ["action"], spec=action_spec),
     )
 
@@ -167,7 +208,7 @@ def make_forward_agent(cfg: DictConfig, obs_dim: int, action_spec) -> Agent:
         {"params": list(loss.actor_network_params.values(True, True)), "lr": cfg.forward.actor_lr},
         {"params": list(loss.value_network_params.values(True, True)), "lr": cfg.forward.critic_lr},
     ])
-    return Agent(actor, loss, optimizer, SoftUpdate(loss, tau=cfg.tau), critic)
+    return Agent(actor, loss, optimizer, FusedSoftUpdate(loss, tau=cfg.tau), critic)
 
 
 def make_reset_agent(cfg: DictConfig, obs_dim: int, action_spec) -> Agent:
@@ -196,7 +237,7 @@ def make_reset_agent(cfg: DictConfig, obs_dim: int, action_spec) -> Agent:
             {"params": list(loss.actor_network_params.values(True, True)), "lr": cfg.reset.actor_lr},
             {"params": list(loss.value_network_params.values(True, True)), "lr": cfg.reset.critic_lr},
         ])
-    return Agent(actor, loss, optimizer, SoftUpdate(loss, tau=cfg.tau), model)
+    return Agent(actor, loss, optimizer, FusedSoftUpdate(loss, tau=cfg.tau), model)
 
 
 def make_trigger(cfg: DictConfig, reset_agent: Agent) -> ResetTriggerTransform:

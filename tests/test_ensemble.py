@@ -115,3 +115,38 @@ def test_mismatched_shapes_and_missing_keys_get_clear_errors():
         ens.logits(torch.randn(5, 3), torch.randn(4, 2))
     with pytest.raises(KeyError, match="action"):
         ens(TensorDict(observation=torch.randn(5, 3), batch_size=[5]))
+
+
+def _reference_logits(ens: EnsembleValueOperator, obs: torch.Tensor, act: torch.Tensor) -> torch.Tensor:
+    return torch.stack(
+        [member_reference(ens, i, obs, act) + ens.prior_scale * member_reference(ens, i, obs, act, "prior_")
+         for i in range(ens.num_members)], -1)
+
+
+def test_kept_prior_part_of_slotted_states_gives_the_same_logits_and_follows_changed_states_and_priors():
+    torch.manual_seed(0)
+    ens = EnsembleValueOperator(3, 2, num_members=3, hidden_sizes=(8, 6), dtype=torch.float64)
+    pool = torch.randn(5, 3, dtype=torch.float64)
+    replay_obs, replay_act = torch.randn(4, 3, dtype=torch.float64), torch.rand(4, 2, dtype=torch.float64)
+    policy_act = torch.rand(4, 2, dtype=torch.float64)
+
+    def check(slots: torch.Tensor, states: torch.Tensor) -> None:
+        example_act = torch.rand(len(slots), 2, dtype=torch.float64)
+        obs = torch.cat([states[slots], replay_obs])
+        act = torch.cat([example_act, replay_act])
+        out, policy = ens.paired_logits(obs, act, policy_act, len(slots), slots=slots)
+        torch.testing.assert_close(out, _reference_logits(ens, obs, act), rtol=1e-12, atol=1e-12)
+        torch.testing.assert_close(policy, _reference_logits(ens, replay_obs, policy_act), rtol=1e-12, atol=1e-12)
+
+    check(torch.tensor([0, 1, 1, 4, 0]), pool)  # filled on first use
+    check(torch.tensor([4, 4, 0, 2]), pool)  # read back (slot 2 new)
+    changed = pool.clone()
+    changed[4] += 1.0  # a buffer overwrote slot 4 with another state
+    check(torch.tensor([4, 1, 4]), changed)
+    with torch.no_grad():  # priors reloaded in place (load_state_dict): everything kept is recomputed
+        ens.prior_weight_1.mul_(-2.0)
+    check(torch.tensor([1, 0, 4]), changed)
+    check(torch.tensor([1, 0, 4]), changed)
+    with pytest.raises(ValueError, match="one per row"):
+        ens.paired_logits(torch.cat([pool[:2], replay_obs]), torch.rand(6, 2, dtype=torch.float64), policy_act, 2,
+                          slots=torch.tensor([0]))

@@ -48,6 +48,30 @@ def test_transitions_wait_for_their_nstep_state_across_single_frame_extends():
     assert tail["nstep", "observation"].squeeze(-1).tolist() == [11]
 
 
+@pytest.mark.parametrize("n", [1, 3])
+@pytest.mark.parametrize("rows_per_extend", [1, 4])
+def test_every_transition_gets_the_state_n_steps_ahead_within_its_trajectory(n, rows_per_extend):
+    # three trajectories: one ended by done (cells 0..4), one cut by a new trajectory id without a
+    # done (cells 10..11), one left open and flushed (cells 20..26)
+    cells = [0, 1, 2, 3, 4, 10, 11, 20, 21, 22, 23, 24, 25, 26]
+    ids = [0] * 5 + [1] * 2 + [2] * 7
+    data = trajectory(cells, ids)
+    data["next", "done"][4] = True
+    # by hand: s_{t+n} is cell + n, but never past the last next state of the trajectory (5, 12, 27)
+    last = {0: 5, 1: 12, 2: 27}
+    expected = [min(c + n, last[i]) for c, i in zip(cells, ids)]
+    transform = NStepStateTransform(n)
+    rb = ReplayBuffer(storage=LazyTensorStorage(100), transform=transform)
+    for start in range(0, len(cells), rows_per_extend):
+        rb.extend(data[start:start + rows_per_extend])
+    assert transform.num_pending == n - 1  # the open trajectory's last n - 1 transitions
+    tail = transform.flush()
+    assert (tail is None) == (n == 1)
+    stored = rb[:] if tail is None else torch.cat([rb[:], tail.exclude("index")], 0)
+    assert stored["observation"].squeeze(-1).tolist() == cells  # in order, none lost or repeated
+    assert stored["nstep", "observation"].squeeze(-1).tolist() == expected
+
+
 def test_n_equal_1_copies_the_next_state():
     rb = ReplayBuffer(storage=LazyTensorStorage(10), transform=NStepStateTransform(1))
     rb.extend(trajectory([0, 1, 2], [0, 0, 0]))
@@ -78,7 +102,11 @@ def test_example_buffer_stores_states_samples_them_and_round_trips():
     buffer.add(TensorDict(observation=torch.ones(3, 2), batch_size=[3]))
     assert len(buffer) == 4
     sample = buffer.sample(32)
-    assert set(sample.keys()) == {"observation"} and sample.shape == (32,)
+    assert set(sample.keys()) == {"observation", "index"} and sample.shape == (32,)
+    # slot 0 holds the zero state, slots 1-3 the ones: each sampled row matches its slot
+    assert sample["index"].dtype == torch.int64
+    assert ((sample["index"] >= 0) & (sample["index"] <= 3)).all()
+    assert torch.equal(sample["observation"][:, 0], (sample["index"] > 0).float())
     copy = InitialStateBuffer(max_size=10)
     copy.load_state_dict(buffer.state_dict())
     assert len(copy) == 4

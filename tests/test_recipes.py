@@ -13,6 +13,8 @@ from pathlib import Path
 import pytest
 import torch
 from hydra import compose, initialize_config_dir
+from tensordict import TensorDict
+from torchrl.objectives import DDPGLoss
 
 RECIPES = Path(__file__).resolve().parents[1] / "recipes"
 sys.path.insert(0, str(RECIPES))
@@ -21,6 +23,7 @@ import train  # noqa: E402
 import train_utils  # noqa: E402
 from train_utils import ALGOS, ConfigError  # noqa: E402
 
+from torchrl_reset import EnsembleValueOperator  # noqa: E402
 from torchrl_reset_envs import TASKS  # noqa: E402
 
 TINY = [
@@ -238,3 +241,28 @@ def test_realtime_env_is_found_only_on_a_real_time_backend():
     assert train_utils.realtime_env(train.make_env("ur3_peg")) is None
     robot = UR3Env("peg", backend=ClockedBackend(FakeClock()), manual_reset=lambda env: None)
     assert train_utils.realtime_env(TransformedEnv(robot)) is robot
+
+
+def test_fused_soft_update_moves_every_target_by_tau_and_tensor_module_writes_its_output():
+    from torchrl.data import Bounded
+
+    actor = train_utils.make_actor(3, Bounded(-1.0, 1.0, shape=(2,)), (8,))
+    obs = torch.randn(5, 3)
+    net = actor[0].module
+    torch.testing.assert_close(actor(TensorDict(observation=obs, batch_size=[5]))["action_preactivation"], net(obs))
+
+    critic = EnsembleValueOperator(3, 2, num_members=1, hidden_sizes=(8, 8), prior_scale=0.0,
+                                   out_keys=["state_action_value"])
+    loss = DDPGLoss(actor, critic, delay_actor=True, delay_value=True)
+    updater = train_utils.FusedSoftUpdate(loss, tau=0.25)
+    sources = [*loss.actor_network_params.values(True, True), *loss.value_network_params.values(True, True)]
+    targets = [*loss.target_actor_network_params.values(True, True), *loss.target_value_network_params.values(True, True)]
+    trained = [p.requires_grad for p in sources]  # the tanh bounds are buffers: no target update
+    assert sum(trained) == 4 + 7  # actor: 2 weights, 2 biases; critic: 3 weights, 3 biases, action weight
+    with torch.no_grad():
+        for p in sources:
+            p.add_(1.0)  # sources move by 1 from the targets
+    before = [t.clone() for t in targets]
+    updater.step()
+    for was, now, moves in zip(before, targets, trained):
+        torch.testing.assert_close(now, was + (0.25 if moves else 0.0))  # (1 - tau) t + tau (t + 1) = t + tau

@@ -68,17 +68,23 @@ def plain_losses(actor: nn.Module, params: dict, target: dict, priors: dict, bat
     return loss_classifier, loss_actor
 
 
-def make_batch(gen: torch.Generator) -> TensorDict:
+def make_batch(gen: torch.Generator, example_pool: torch.Tensor | None = None) -> TensorDict:
+    """A replay batch; with ``example_pool``, the examples are drawn from that fixed set of states
+    with their slots under ``("example", "index")``, as InitialStateBuffer.sample gives them."""
     state = lambda: TensorDict(observation=torch.randn(BATCH, OBS, generator=gen, dtype=torch.float64), batch_size=[BATCH])  # noqa: E731
-    return TensorDict(
+    batch = TensorDict(
         observation=torch.randn(BATCH, OBS, generator=gen, dtype=torch.float64),
         action=torch.rand(BATCH, ACT, generator=gen, dtype=torch.float64) * 2 - 1,
         next=state(), nstep=state(), example=state(), batch_size=[BATCH],
     )
+    if example_pool is not None:
+        slots = torch.randint(len(example_pool), (BATCH,), generator=gen)
+        batch["example"] = TensorDict(observation=example_pool[slots], index=slots, batch_size=[BATCH])
+    return batch
 
 
-@pytest.mark.parametrize("threads", [1, 2])
-def test_optimized_update_matches_a_plain_per_member_reference_over_several_updates(threads):
+@pytest.mark.parametrize("threads, examples_with_slots", [(1, False), (2, False), (2, True)])
+def test_optimized_update_matches_a_plain_per_member_reference_over_several_updates(threads, examples_with_slots):
     old_threads = torch.get_num_threads()
     torch.set_num_threads(threads)
     try:
@@ -104,8 +110,11 @@ def test_optimized_update_matches_a_plain_per_member_reference_over_several_upda
         plain_optimizer = torch.optim.Adam([{"params": list(plain_actor.parameters()), "lr": 1e-2},
                                             {"params": list(params.values()), "lr": 3e-2}], foreach=False)
         gen = torch.Generator().manual_seed(1)
+        # 20 example states for 64 rows: later updates read the priors' part of most examples from
+        # the kept copy (EnsembleValueOperator.paired_logits with slots)
+        pool = torch.randn(20, OBS, generator=gen, dtype=torch.float64) if examples_with_slots else None
         for _ in range(4):
-            batch = make_batch(gen)
+            batch = make_batch(gen, pool)
             out = loss(batch)
             ref_classifier, ref_actor = plain_losses(plain_actor, params, target, priors, batch)
             torch.testing.assert_close(out["loss_classifier"], ref_classifier, rtol=1e-10, atol=1e-12)

@@ -68,7 +68,13 @@ def _row_split(members: int, rows: int, device: torch.device) -> int:
 
 
 def _members_linear(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor) -> torch.Tensor:
-    """``x[i] @ weight[i] + bias[i]`` for every member ``i``: [M, N, d] x [M, d, h] -> [M, N, h]."""
+    """``x[i] @ weight[i] + bias[i]`` for every member ``i``: [M, N, d] x [M, d, h] -> [M, N, h].
+
+    A one-wide output (the logit layer) is computed as row-wise dot products: a batched matrix
+    product with a single output column runs several times slower on CPU, forward and backward.
+    """
+    if weight.shape[-1] == 1:
+        return (torch.linalg.vecdot(x, weight.transpose(-1, -2)) + bias).unsqueeze(-1)
     members, rows, width = x.shape
     split = _row_split(members, rows, x.device)
     if split == 1:
@@ -80,6 +86,71 @@ def _members_linear(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor) -
         weight.unsqueeze(1).expand(members, split, *weight.shape[1:]).reshape(blocks, *weight.shape[1:]),
     )
     return out.view(members, rows, -1)
+
+
+class _PriorStateCache:
+    """The priors' state part (``EnsembleValueOperator._trunk``) for states kept in numbered slots.
+
+    The priors never train, so their state part is a fixed function of the state: for a fixed set
+    of states sampled again and again (the success examples) it is computed once per state. Each
+    slot remembers the state it was computed for, and the whole cache the prior tensors it was
+    computed with (their identity and in-place version), so a slot whose state changed (a buffer
+    that overwrote it) or priors that were reloaded are recomputed, never read stale.
+    """
+
+    max_slots = 1 << 14  # about 100 MB at K = 5, 300 units; slots past it are computed each time
+
+    def __init__(self) -> None:
+        self.states: torch.Tensor | None = None
+        self.trunks: torch.Tensor | None = None
+        self.filled: torch.Tensor | None = None
+        self.source: tuple | None = None
+
+    def clear(self) -> None:
+        self.states = self.trunks = self.filled = self.source = None
+
+    def _fit(self, obs: torch.Tensor, size: int, members: int, width: int, source: tuple) -> None:
+        fresh = (
+            self.states is None
+            or self.source != source
+            or self.states.shape[-1] != obs.shape[-1]
+            or self.states.dtype != obs.dtype
+            or self.states.device != obs.device
+            or self.trunks.shape[0] != members
+            or self.trunks.shape[-1] != width
+        )
+        if fresh:
+            self.clear()
+            capacity = 0
+        else:
+            capacity = self.states.shape[0]
+        if size <= capacity:
+            return
+        new_capacity = min(self.max_slots, max(256, 1 << (size - 1).bit_length()))
+        states = obs.new_empty(new_capacity, obs.shape[-1])
+        trunks = obs.new_empty(members, new_capacity, width)
+        filled = torch.zeros(new_capacity, dtype=torch.bool, device=obs.device)
+        if capacity:
+            states[:capacity] = self.states
+            trunks[:, :capacity] = self.trunks
+            filled[:capacity] = self.filled
+        self.states, self.trunks, self.filled, self.source = states, trunks, filled, source
+
+    def lookup(self, obs: torch.Tensor, slots: torch.Tensor, weights: list[torch.Tensor], biases: list[torch.Tensor]) -> torch.Tensor:
+        """The prior trunk [M, N, h1] of ``obs`` [N, d], whose rows sit in ``slots`` [N]."""
+        members, width = weights[1].shape[0], weights[1].shape[-1]
+        if slots.numel() == 0 or int(slots.min()) < 0 or int(slots.max()) >= self.max_slots:
+            return EnsembleValueOperator._trunk(obs, weights, biases)
+        source = tuple((t.data_ptr(), t._version) for t in (*weights[:2], *biases[:2]))
+        self._fit(obs, int(slots.max()) + 1, members, width, source)
+        stale = ~self.filled[slots] | (self.states[slots] != obs).any(-1)
+        if bool(stale.any()):
+            rows = stale.nonzero().squeeze(-1)
+            where = slots[rows]
+            self.trunks[:, where] = EnsembleValueOperator._trunk(obs[rows], weights, biases)
+            self.states[where] = obs[rows]
+            self.filled[where] = True
+        return self.trunks[:, slots]
 
 
 def _xavier_uniform_(weight: torch.Tensor, fan_in: int, fan_out: int) -> None:
@@ -185,6 +256,7 @@ class EnsembleValueOperator(TensorDictModuleBase):
                 self.register_buffer(f"prior_weight_{i}", torch.empty(k, n_in, n_out, **factory))
                 self.register_buffer(f"prior_bias_{i}", torch.empty(k, n_out, **factory))
             self.register_buffer("prior_action_weight", torch.empty(k, action_dim, sizes_out[1], **factory))
+        self._prior_cache = _PriorStateCache()
         self.reset_parameters()
 
     @property
@@ -195,6 +267,7 @@ class EnsembleValueOperator(TensorDictModuleBase):
         """Xavier-uniform weights and zero biases for the trained part; a fresh random prior."""
         sizes_in = (self.observation_dim, *self.hidden_sizes)
         sizes_out = (*self.hidden_sizes, 1)
+        self._prior_cache.clear()
         prefixes = ["", "prior_"] if self.has_prior else [""]
         for prefix in prefixes:
             for i, (n_in, n_out) in enumerate(zip(sizes_in, sizes_out)):
@@ -238,10 +311,20 @@ class EnsembleValueOperator(TensorDictModuleBase):
         weights: list[torch.Tensor],
         biases: list[torch.Tensor],
         action_weight: torch.Tensor,
+        *,
+        overwrite: bool = False,
     ) -> torch.Tensor:
-        """The rest of M members from their trunk output [M, N, h1] and shared [N, a] actions: [M, N] logits."""
+        """The rest of M members from their trunk output [M, N, h1] and shared [N, a] actions: [M, N] logits.
+
+        ``overwrite=True`` adds the action part into ``trunk`` itself (no copy of it): only for a
+        trunk that nothing reads afterwards (autograd does not keep the trunk for backward).
+        """
         members = trunk.shape[0]
-        hidden = torch.baddbmm(trunk, action.unsqueeze(0).expand(members, *action.shape), action_weight)
+        actions = action.unsqueeze(0).expand(members, *action.shape)
+        if overwrite:
+            hidden = trunk.baddbmm_(actions, action_weight)
+        else:
+            hidden = torch.baddbmm(trunk, actions, action_weight)
         for i in range(2, len(weights)):
             hidden = _members_linear(hidden.relu_(), weights[i], biases[i])
         return hidden.squeeze(-1)
@@ -256,7 +339,8 @@ class EnsembleValueOperator(TensorDictModuleBase):
         action_weight: torch.Tensor,
     ) -> torch.Tensor:
         """Runs M stacked members on the same [N, *] inputs; returns [M, N] logits."""
-        return cls._head(cls._trunk(obs, weights, biases), action, weights, biases, action_weight)
+        overwrite = not torch.is_grad_enabled()
+        return cls._head(cls._trunk(obs, weights, biases), action, weights, biases, action_weight, overwrite=overwrite)
 
     def _check_inputs(self, observation: torch.Tensor, action: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         if observation.shape[-1:] != (self.observation_dim,):
@@ -322,6 +406,7 @@ class EnsembleValueOperator(TensorDictModuleBase):
         policy_action: torch.Tensor,
         start: int,
         params: TensorDictBase | None = None,
+        slots: torch.Tensor | None = None,
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """Logits of ``(observation, action)`` and of ``(observation[start:], policy_action)`` in one pass.
 
@@ -336,6 +421,11 @@ class EnsembleValueOperator(TensorDictModuleBase):
             policy_action (Tensor): ``[N - start, action_dim]``, actions for the last rows.
             start (int): the first row the policy actions belong to.
             params (TensorDictBase, optional): as in :meth:`logits`.
+            slots (Tensor, optional): ``[start]`` integer slots of the first ``start`` rows in a
+                store of fixed states (such as :class:`~torchrl_reset.InitialStateBuffer`'s
+                ``"index"``). The priors' state part of those rows is then computed once per state
+                and kept: the same numbers, without the repeated work. Ignored under
+                ``torch.compile``.
 
         Returns:
             ``[N, K]`` and ``[N - start, K]`` logits.
@@ -344,17 +434,36 @@ class EnsembleValueOperator(TensorDictModuleBase):
         policy_obs, policy_act = self._check_inputs(observation[start:], policy_action)
         weights, biases, action_weight = self.layer_tensors(params)
         trunk = self._trunk(obs, weights, biases)
-        out = self._head(trunk, act, weights, biases, action_weight)
         held = [w.detach() for w in weights], [b.detach() for b in biases], action_weight.detach()
         policy = self._head(trunk[:, start:].detach(), policy_act, *held)
+        # after the policy's head: this one may add into the trunk in place
+        out = self._head(trunk, act, weights, biases, action_weight, overwrite=True)
         if self.has_prior:
             p_weights, p_biases, p_action_weight = self.layer_tensors(params, "prior_")
+            p_layers = p_weights, p_biases, p_action_weight
+            use_cache = slots is not None and start > 0 and not torch.compiler.is_compiling()
+            if use_cache and (slots.shape != (start,) or slots.dtype.is_floating_point or slots.dtype == torch.bool):
+                raise ValueError(
+                    f"slots must be integers, one per row before start ({start}); got shape {tuple(slots.shape)}, {slots.dtype}."
+                )
             with torch.no_grad():
-                prior_trunk = self._trunk(obs, p_weights, p_biases)
-                prior = self._head(prior_trunk, act, p_weights, p_biases, p_action_weight)
+                if use_cache:
+                    kept = self._prior_cache.lookup(obs[:start], slots.to(obs.device), p_weights, p_biases)
+                    prior_trunk = self._trunk(obs[start:], p_weights, p_biases)
+                else:
+                    prior_trunk = self._trunk(obs, p_weights, p_biases)
+            rest = prior_trunk if use_cache else prior_trunk[:, start:]
+            # the policy's prior first: the replay rows' prior then reuses the trunk's memory
+            policy = policy + self.prior_scale * self._head(rest, policy_act, *p_layers)
+            with torch.no_grad():
+                if use_cache:
+                    prior = torch.cat([
+                        self._head(kept, act[:start], *p_layers, overwrite=True),
+                        self._head(prior_trunk, act[start:], *p_layers, overwrite=True),
+                    ], 1)
+                else:
+                    prior = self._head(prior_trunk, act, *p_layers, overwrite=True)
             out = out + self.prior_scale * prior
-            policy_prior = self._head(prior_trunk[:, start:], policy_act, p_weights, p_biases, p_action_weight)
-            policy = policy + self.prior_scale * policy_prior
         return out.transpose(0, 1), policy.transpose(0, 1)
 
     def observation_from(self, tensordict: TensorDictBase) -> torch.Tensor:

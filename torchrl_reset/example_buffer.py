@@ -77,10 +77,17 @@ class InitialStateBuffer:
             raise ValueError(f"add expects one state or a 1-dimensional batch, got batch size {tuple(state.batch_size)}.")
 
     def sample(self, batch_size: int) -> TensorDictBase:
-        """A uniform sample with replacement of ``batch_size`` examples."""
+        """A uniform sample with replacement of ``batch_size`` examples.
+
+        Besides the state entries, ``"index"`` holds each example's slot in the buffer (int64):
+        :class:`~torchrl_reset.RCELoss` uses it to compute the classifier priors' part of each
+        example once instead of at every update.
+        """
         if len(self) == 0:
             raise RuntimeError("InitialStateBuffer is empty: add at least one initial state before sampling.")
-        return self._buffer.sample(batch_size)
+        data, info = self._buffer.sample(batch_size, return_info=True)
+        data.set("index", torch.as_tensor(info["index"], dtype=torch.int64, device=data.device))
+        return data
 
     def state_dict(self) -> dict:
         return {"max_size": self.max_size, "state_keys": self.state_keys, "buffer": self._buffer.state_dict()}

@@ -75,12 +75,13 @@ class NStepStateTransform(Transform):
         self.traj_key = traj_key
         self.done_key = done_key
         self.out_key = out_key
-        self._pending: TensorDictBase | None = None
+        # held-back transitions, one single-row tensordict each, in time order
+        self._pending: list[TensorDictBase] = []
 
     @property
     def num_pending(self) -> int:
         """Transitions held back until their n-step state is known."""
-        return 0 if self._pending is None else self._pending.shape[0]
+        return len(self._pending)
 
     def _inv_call(self, tensordict: TensorDictBase) -> TensorDictBase | None:
         if tensordict.batch_dims != 1:
@@ -88,12 +89,35 @@ class NStepStateTransform(Transform):
                 "NStepStateTransform expects 1-dimensional data in time order, got batch size "
                 f"{tuple(tensordict.batch_size)}."
             )
-        next_keys = tensordict.get("next").keys(True, True) if "next" in tensordict.keys() else ()
+        next_td = tensordict.get("next", None)
+        next_keys = next_td.keys(True, True) if isinstance(next_td, TensorDictBase) else ()
         for key in self.state_keys:
             if key not in next_keys:
                 raise KeyError(f"NStepStateTransform needs ('next', {key!r}) in the data.")
-        total = tensordict if self._pending is None else torch.cat([self._pending, tensordict], 0)
-        return self._complete(total, force_close=False)
+        if tensordict.shape[0] == 1:
+            return self._add_one(tensordict)
+        return self._complete(torch.cat([*self._pending, tensordict], 0), force_close=False)
+
+    def _add_one(self, row: TensorDictBase) -> TensorDictBase | None:
+        """One transition (the collector's step by step case), without re-scanning what is held back:
+        it completes the oldest held-back transition, or, when it ends its trajectory, all of them."""
+        traj = row.get(self.traj_key, None)
+        previous = self._pending[-1].get(self.traj_key, None) if self._pending else None
+        if previous is not None and traj is not None and not torch.equal(traj.reshape(-1), previous.reshape(-1)):
+            # a new trajectory began without a done: the held-back ones end with the previous one
+            closed = self._complete(torch.cat(self._pending, 0), force_close=True)
+            rest = self._add_one(row)
+            return closed if rest is None else torch.cat([closed, rest], 0)
+        done = row.get(self.done_key, None)
+        self._pending.append(row.clone())
+        if done is not None and bool(done.any()):
+            return self._complete(torch.cat(self._pending, 0), force_close=True)
+        if len(self._pending) < self.n_steps:
+            return None
+        newest = self._pending[-1]  # row t + n - 1: its next state is s_{t+n} of the oldest row t
+        first = self._pending.pop(0)
+        first.set(self.out_key, newest.get("next").select(*self.state_keys))
+        return first
 
     def _complete(self, total: TensorDictBase, force_close: bool) -> TensorDictBase | None:
         length = total.shape[0]
@@ -116,7 +140,7 @@ class NStepStateTransform(Transform):
         ready = closed | (index + self.n_steps - 1 <= segment_end)
         # Only the last, still open trajectory can be unready, so the ready rows are a prefix.
         num_ready = int(ready.sum())
-        self._pending = total[num_ready:].clone() if num_ready < length else None
+        self._pending = list(total[num_ready:].clone().split(1, 0)) if num_ready < length else []
         if num_ready == 0:
             return None
         source = torch.minimum(index[:num_ready] + self.n_steps - 1, segment_end[:num_ready])
@@ -126,17 +150,20 @@ class NStepStateTransform(Transform):
 
     def flush(self) -> TensorDictBase | None:
         """Returns the held-back transitions, completed with their trajectory's last state."""
-        if self._pending is None:
+        if not self._pending:
             return None
-        pending, self._pending = self._pending, None
+        pending = torch.cat(self._pending, 0)
+        self._pending = []
         return self._complete(pending, force_close=True)
 
     def get_extra_state(self) -> dict:
-        return {"pending": None if self._pending is None else self._pending.to_dict()}
+        return {"pending": torch.cat(self._pending, 0).to_dict() if self._pending else None}
 
     def set_extra_state(self, state: dict) -> None:
         pending = state.get("pending")
-        self._pending = None if pending is None else TensorDict.from_dict(pending, auto_batch_size=True, batch_dims=1)
+        self._pending = [] if pending is None else list(
+            TensorDict.from_dict(pending, auto_batch_size=True, batch_dims=1).split(1, 0)
+        )
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         # Sampling reads what was written on extend; nothing to do.

@@ -93,6 +93,10 @@ class RCELoss(LossModule):
             next_state (NestedKey): the sub-tensordict holding ``s_{t+1}``. Defaults to ``"next"``.
             nstep_state (NestedKey): the sub-tensordict holding ``s_{t+n}``. Defaults to ``"nstep"``.
             example_state (NestedKey): the sub-tensordict holding the success examples. Defaults to ``"example"``.
+            example_index (NestedKey): inside ``example_state``, each example's slot in its buffer
+                (:meth:`InitialStateBuffer.sample <torchrl_reset.InitialStateBuffer.sample>` writes
+                it). Optional: when present, the priors' part of each example is computed once and
+                kept (:meth:`EnsembleValueOperator.paired_logits`). Defaults to ``"index"``.
         """
 
         action: NestedKey = "action"
@@ -100,6 +104,7 @@ class RCELoss(LossModule):
         next_state: NestedKey = "next"
         nstep_state: NestedKey = "nstep"
         example_state: NestedKey = "example"
+        example_index: NestedKey = "index"
 
     default_keys = _AcceptedKeys
     tensor_keys: _AcceptedKeys
@@ -243,6 +248,7 @@ class RCELoss(LossModule):
         if action is None:
             raise KeyError(f"RCELoss needs the action key {keys.action!r} at the root of its input.")
         examples = self._require(replay, keys.example_state, "success examples s*")
+        slots = replay.get(_as_tuple(keys.example_state) + _as_tuple(keys.example_index), None)
         if examples.shape[0] != batch:
             raise ValueError(f"RCELoss needs one success example per replay row: got {examples.shape[0]} for {batch}.")
         gamma = self.gamma
@@ -262,7 +268,7 @@ class RCELoss(LossModule):
         observation = torch.cat([acting_obs[num_targets:], net.observation_from(states)], 0)
         classifier_action = torch.cat([acting_actions[num_targets:], action.to(acting_actions.dtype)], 0)
         logits, actor_logits = net.paired_logits(
-            observation, classifier_action, self._act(states), batch, self.classifier_network_params
+            observation, classifier_action, self._act(states), batch, self.classifier_network_params, slots=slots
         )
         example_logits, replay_logits = logits[:batch], logits[batch:]
         loss_examples = (1.0 - gamma) * F.binary_cross_entropy_with_logits(
