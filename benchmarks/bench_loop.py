@@ -17,6 +17,11 @@ Runs, one after the other in the same process:
    method states them; ``TensorDictReplayBuffer``s; torch's default Adam; the trigger evaluated at
    every forward step; the same horizons, heat-up, success check and manual resets.
 
+3. **stock, same products**: the stock loop again with the matrix-product precision the recipe's
+   ``speed.matmul_precision=auto`` chose (only when that is not plain float32: oneDNN's bf16 path,
+   measured as accurate as float32), so that the ratio is also shown for the same arithmetic speed.
+   The target is judged on this stricter ratio when it exists.
+
 Both record the mean wall time of a step of each phase once both agents made 10 updates (env step,
 policy, trigger, buffer, update). The loops decide their own episode boundaries, so their forward
 shares differ a little; the ratio is therefore given at one common mix (ours' forward share):
@@ -45,6 +50,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "recipes"))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
+import train_utils  # noqa: E402
 from bench_updates import machine, paper_config, write_results  # noqa: E402
 from torchrl_reset_envs import make_env  # noqa: E402
 
@@ -59,6 +65,7 @@ def run_ours(steps: int, heat_up: int, seed: int) -> dict:
                            eval_every=10 * steps, checkpoint_every=10 * steps, log_every=steps)
         summary = train.train(cfg)
     return {"steps": summary["steps"], "seconds": summary["seconds"], "forward_share": summary["forward_share"],
+            "matmul_precision": summary["matmul_precision"],
             "step_seconds": summary["step_seconds"], "manual_resets": summary["manual_resets"],
             "triggered_resets": summary["triggered_resets"]}
 
@@ -254,6 +261,16 @@ def main(argv=None) -> dict:
         print(f"running {name} ({args.steps} steps)...", flush=True)
         results[name] = run(args.steps, args.heat_up, args.seed)
         torch.set_num_threads(args.threads)
+    precision = results["ours"]["matmul_precision"]
+    if precision != "ieee":
+        print(f"running stock with {precision} products ({args.steps} steps)...", flush=True)
+        previous = torch.backends.mkldnn.matmul.fp32_precision
+        train_utils.set_matmul_precision(precision)
+        try:
+            results[f"stock, {precision} products"] = run_stock(args.steps, args.heat_up, args.seed)
+        finally:
+            torch.backends.mkldnn.matmul.fp32_precision = previous
+        torch.set_num_threads(args.threads)
     share = results["ours"]["forward_share"]
     for name, r in results.items():
         if None in r["step_seconds"].values():
@@ -266,9 +283,13 @@ def main(argv=None) -> dict:
     for r in results.values():
         r["raw_steps_per_second"] = r["steps"] / r["seconds"]
         r["steps_per_second_at_common_mix"] = 1.0 / per_step(r)
-    ratio = results["ours"]["steps_per_second_at_common_mix"] / results["stock"]["steps_per_second_at_common_mix"]
+    ours_rate = results["ours"]["steps_per_second_at_common_mix"]
+    ratios = {name: ours_rate / r["steps_per_second_at_common_mix"] for name, r in results.items() if name != "ours"}
+    judged = list(ratios)[-1]  # the same products where that run exists
+    ratio = ratios[judged]
     report = {"machine": machine(), "task": TASK, "steps": args.steps, "heat_up": args.heat_up, "common_forward_share": share,
-              "loops": results, "ratio": ratio, "target": "ratio >= 1.5", "met": ratio >= 1.5}
+              "matmul_precision": precision, "loops": results, "ratios": ratios, "ratio": ratio, "judged_against": judged,
+              "target": "ratio >= 1.5", "met": ratio >= 1.5}
 
     lines = [f"# Whole-loop throughput, {TASK}, paper settings ({report['machine']['date']})", "",
              f"Machine: {report['machine']['cpu']}, {report['machine']['cores']} cores, {args.threads} torch threads; "
@@ -280,8 +301,9 @@ def main(argv=None) -> dict:
         lines.append(f"| {name} | {r['raw_steps_per_second']:.1f} | {r['forward_share']:.3f} | "
                      f"{1000 * r['step_seconds']['forward']:.1f} | {1000 * r['step_seconds']['reset']:.1f} | "
                      f"{r['steps_per_second_at_common_mix']:.1f} |")
-    lines += ["", f"Common mix: forward share {share:.3f}. Ratio ours / stock: **{ratio:.2f}x** "
-              f"(target >= 1.5x: {'met' if ratio >= 1.5 else 'NOT met'})."]
+    lines += ["", f"Common mix: forward share {share:.3f}. Ours' matrix products: {precision}. Ratios: "
+              + "; ".join(f"ours / {name}: {r:.2f}x" for name, r in ratios.items())
+              + f". Against {judged}: **{ratio:.2f}x** (target >= 1.5x: {'met' if ratio >= 1.5 else 'NOT met'})."]
     write_results(args.out, "loop", report, "\n".join(lines) + "\n")
     return report
 

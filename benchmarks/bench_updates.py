@@ -4,9 +4,12 @@
     python benchmarks/bench_updates.py --quick         # fewer repetitions
 
 Measures, in one run:
-1. the machine's matrix-multiply rate (float32, 1024 x 1024 products, the best of several runs);
+1. the machine's matrix-multiply rate (float32, 1024 x 1024 products, the best of several runs),
+   with plain float32 products and, where the recipe's ``speed.matmul_precision=auto`` picks it,
+   with oneDNN's bf16 path;
 2. one whole update, as the training recipe runs it, with its speed settings (fused Adam, freed
-   memory kept): the replay sample from the recipe's buffers (and the success-example sample),
+   memory kept, the matrix-product precision ``auto`` chose; the RCE update also with plain
+   float32 products): the replay sample from the recipe's buffers (and the success-example sample),
    the loss, backward, the optimizer step and the target update, for the forward DDPG agent
    (batch 64; eager, the recipe's default, and through ``torch.compile``), the RCE reset agent
    (K = 5, batch 256 + 256 examples, n = 10, priors) and the LNT reset agent (K = 20, batch 256),
@@ -208,6 +211,9 @@ def write_results(folder: Path, name: str, report: dict, text: str) -> None:
     print(f"wrote {folder / f'{name}-{stamp}.md'} and .json")
 
 
+RATE_NAMES = {"ieee": "plain float32", "bf16": "oneDNN bf16 path"}
+
+
 def main(argv=None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--quick", action="store_true", help="fewer repetitions")
@@ -219,20 +225,33 @@ def main(argv=None) -> dict:
     train_utils.retain_freed_memory()  # as the recipe does (speed.retain_memory)
     repeats = 20 if args.quick else 60
 
-    rate = matmul_rate()
+    # the recipe's speed.matmul_precision (auto: oneDNN's bf16 path only where it measures as accurate
+    # as plain float32); every rate and limit below belongs to the precision its row ran with
+    precision = train_utils.set_matmul_precision(paper_config("ours").speed.matmul_precision)
+    rates = {}
+    for p in dict.fromkeys(("ieee", precision)):
+        train_utils.set_matmul_precision(p)
+        rates[p] = matmul_rate()
+    train_utils.set_matmul_precision(precision)
     rows = []
-    for label, kind, members, batch, compiled in (
-        ("forward DDPG update (batch 64), eager", "forward", None, None, False),
-        ("forward DDPG update (batch 64), torch.compile", "forward", None, None, True),
-        ("reset RCE update (K = 5, batch 256 + 256 examples, n = 10)", "ours", None, None, False),
-        ("reset LNT update (K = 20, batch 256)", "lnt", None, None, False),
-    ):
-        result = time_update(make_update(kind, members=members, batch=batch, compiled=compiled), repeats,
-                             count_flops=not compiled)
+    reset_label = "reset RCE update (K = 5, batch 256 + 256 examples, n = 10)"
+    cases = [
+        ("forward DDPG update (batch 64), eager", "forward", False, precision),
+        ("forward DDPG update (batch 64), torch.compile", "forward", True, precision),
+        (reset_label, "ours", False, precision),
+        ("reset LNT update (K = 20, batch 256)", "lnt", False, precision),
+    ]
+    if precision != "ieee":
+        cases.insert(3, (reset_label + ", plain float32 products", "ours", False, "ieee"))
+    for label, kind, compiled, p in cases:
+        train_utils.set_matmul_precision(p)
+        result = time_update(make_update(kind, compiled=compiled), repeats, count_flops=not compiled)
         if compiled:  # the same arithmetic as the eager row above it
             result["flops"] = rows[-1]["flops"]
-        limit_ms = 1000 * result["flops"] / rate
-        rows.append({"update": label, **result, "flop_limit_ms": limit_ms, "fraction_of_limit": limit_ms / result["median_ms"]})
+        limit_ms = 1000 * result["flops"] / rates[p]
+        rows.append({"update": label, "precision": p, **result, "flop_limit_ms": limit_ms,
+                     "fraction_of_limit": limit_ms / result["median_ms"]})
+    train_utils.set_matmul_precision(precision)
     scaling = []
     for members in (1, 5, 10, 20):
         for batch in (64, 256, 1024):
@@ -240,7 +259,7 @@ def main(argv=None) -> dict:
             scaling.append({"members": members, "batch": batch, **result})
 
     by = {(r["members"], r["batch"]): r["median_ms"] for r in scaling}
-    forward, compiled, ours = rows[0], rows[1], rows[2]  # the recipe's default runs both losses eagerly
+    forward, compiled, ours = rows[0], rows[1], rows[2]  # the recipe's defaults: both losses eager
     targets = [
         ("reset RCE update <= 35 ms", ours["median_ms"], ours["median_ms"] <= 35.0),
         ("reset RCE update <= 2x its FLOP-limit time", ours["median_ms"] / ours["flop_limit_ms"],
@@ -249,18 +268,24 @@ def main(argv=None) -> dict:
         ("forward update <= 3 ms (torch.compile)", compiled["median_ms"], compiled["median_ms"] <= 3.0),
         ("K = 20 costs < 4x K = 5 (batch 256)", by[(20, 256)] / by[(5, 256)], by[(20, 256)] < 4 * by[(5, 256)]),
     ]
-    report = {"machine": machine(), "matmul_gflops": rate / 1e9, "updates": rows, "scaling": scaling,
+    report = {"machine": machine(), "matmul_precision": precision,
+              "matmul_gflops": {p: r / 1e9 for p, r in rates.items()}, "updates": rows, "scaling": scaling,
               "targets": [{"target": t, "measured": v, "met": ok} for t, v, ok in targets]}
 
     lines = [f"# Update speed ({report['machine']['date']})", "",
              f"Machine: {report['machine']['cpu']}, {report['machine']['cores']} cores, {args.threads} torch threads; "
              f"torch {torch.__version__}, torchrl {torchrl.__version__}, Python {platform.python_version()}.",
-             f"Measured float32 matrix-multiply rate: {rate / 1e9:.0f} GFLOP/s.", "",
-             "| update | median (ms) | min (ms) | GFLOP | FLOP-limit time (ms) | fraction of the limit |", "|---|---|---|---|---|---|"]
+             "Float32 matrix products (1024 x 1024, best of several runs): "
+             + "; ".join(f"{RATE_NAMES[p]}: {r / 1e9:.0f} GFLOP/s" for p, r in rates.items()) + ".",
+             f"The recipe's `speed.matmul_precision=auto` chose `{precision}` on this machine; each row's FLOP limit "
+             "uses the rate of the precision it ran with.", "",
+             "| update | products | median (ms) | min (ms) | GFLOP | FLOP-limit time (ms) | fraction of the limit |",
+             "|---|---|---|---|---|---|---|"]
     for r in rows:
-        lines.append(f"| {r['update']} | {r['median_ms']:.2f} | {r['min_ms']:.2f} | {r['flops'] / 1e9:.3f} | "
+        lines.append(f"| {r['update']} | {r['precision']} | {r['median_ms']:.2f} | {r['min_ms']:.2f} | {r['flops'] / 1e9:.3f} | "
                      f"{r['flop_limit_ms']:.2f} | {100 * r['fraction_of_limit']:.0f}% |")
-    lines += ["", "Reset RCE update, median ms (rows: K; columns: batch):", "", "| K | 64 | 256 | 1024 |", "|---|---|---|---|"]
+    lines += ["", f"Reset RCE update ({precision} products), median ms (rows: K; columns: batch):", "",
+              "| K | 64 | 256 | 1024 |", "|---|---|---|---|"]
     for members in (1, 5, 10, 20):
         lines.append(f"| {members} | " + " | ".join(f"{by[(members, b)]:.1f}" for b in (64, 256, 1024)) + " |")
     lines += ["", "| target | measured | met |", "|---|---|---|"]

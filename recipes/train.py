@@ -44,6 +44,7 @@ from train_utils import (  # noqa: E402
     realtime_env,
     reset_horizon,
     retain_freed_memory,
+    set_matmul_precision,
     UpdateBudget,
     validate,
     with_exploration,
@@ -70,12 +71,21 @@ class TrainingDiverged(RuntimeError):
 
 def train(cfg: DictConfig) -> dict:
     """Run (or resume) one training run; returns the summary also written to ``summary.json``."""
+    previous = torch.backends.mkldnn.matmul.fp32_precision
+    try:
+        return _train(cfg)
+    finally:  # speed.matmul_precision is process-wide: leave it as found
+        torch.backends.mkldnn.matmul.fp32_precision = previous
+
+
+def _train(cfg: DictConfig) -> dict:
     validate(cfg)
     run_dir = Path(cfg.run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
     torch.set_num_threads(int(cfg.threads))
     if cfg.speed.retain_memory:
         retain_freed_memory()
+    matmul_precision = set_matmul_precision(OmegaConf.select(cfg, "speed.matmul_precision", default="ieee"))
     torch.manual_seed(cfg.seed)
     np.random.seed(cfg.seed)
     random.seed(cfg.seed)
@@ -276,7 +286,8 @@ def train(cfg: DictConfig) -> dict:
         "seconds": round(history["elapsed"], 1),
         "steps_per_second": round(collector.frames / max(history["elapsed"], 1e-9), 1),
         "step_seconds": {name: (total / count if count else None) for name, (total, count) in step_time.items()},
-        "device": str(cfg.device), "torch": torch.__version__, "torchrl": torchrl.__version__,
+        "device": str(cfg.device), "matmul_precision": matmul_precision,
+        "torch": torch.__version__, "torchrl": torchrl.__version__,
     }
     (run_dir / "summary.json").write_text(json.dumps(summary, indent=2, default=_json_default))
     collector.shutdown()

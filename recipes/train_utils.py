@@ -61,6 +61,9 @@ def validate(cfg: DictConfig) -> None:
         problems.append("env.backend=rtde needs env.host=<the controller's address>")
     if env and not cfg.task.name.startswith("ur3_"):
         problems.append(f"env.* options ({', '.join(env)}) only apply to the UR3 tasks")
+    precision = OmegaConf.select(cfg, "speed.matmul_precision", default="ieee")
+    if precision not in MATMUL_PRECISIONS:
+        problems.append(f"speed.matmul_precision must be one of {', '.join(MATMUL_PRECISIONS)}; got {precision!r}")
     compile_agents = OmegaConf.select(cfg, "speed.compile", default=[])
     if not OmegaConf.is_list(compile_agents) or not set(compile_agents) <= {"forward", "reset"}:
         problems.append(f"speed.compile must be a list of agents among forward, reset; got {compile_agents!r}")
@@ -170,6 +173,46 @@ def retain_freed_memory() -> bool:
         return bool(libc.mallopt(m_mmap_threshold, 1 << 30)) and bool(libc.mallopt(m_trim_threshold, 1 << 30))
     except (OSError, AttributeError):  # not glibc
         return False
+
+
+MATMUL_PRECISIONS = ("auto", "ieee", "bf16")
+
+
+def _product_error(a: torch.Tensor, b: torch.Tensor, exact: torch.Tensor) -> float:
+    return float(((a @ b).double() - exact).abs().max() / exact.abs().max())
+
+
+def set_matmul_precision(setting: str) -> str:
+    """Chooses how float32 matrix products run on CPU; returns the choice in effect (``ieee`` or ``bf16``).
+
+    ``ieee``: plain float32 products. ``bf16``: torch's ``torch.backends.mkldnn.matmul.fp32_precision
+    = "bf16"``, which hands float32 products to oneDNN and lets it use bf16 arithmetic inside. On
+    the 2-core AVX512-BF16 machines this project is measured on, that path is 2.2x faster on the
+    reset update's products and as accurate as plain float32 (a reset update's losses and gradients
+    agree with float64 to about 1e-7 either way), but other processors may use plain bf16 there
+    (about 3 significant digits). ``auto`` therefore measures it: one 256 x 400 x 300 product
+    against float64, and ``bf16`` only when its error stays within 4x that of plain float32.
+    """
+    if setting not in MATMUL_PRECISIONS:
+        raise ValueError(f"matmul precision must be one of {MATMUL_PRECISIONS}, got {setting!r}.")
+    backend = torch.backends.mkldnn.matmul
+    if setting == "ieee" or not torch.backends.mkldnn.is_available():
+        backend.fp32_precision = "ieee"
+        return "ieee"
+    backend.fp32_precision = "bf16"
+    if setting == "bf16":
+        return "bf16"
+    gen = torch.Generator().manual_seed(0)
+    a = torch.rand(256, 400, generator=gen) * 2 - 1
+    b = torch.rand(400, 300, generator=gen) * 2 - 1
+    exact = a.double() @ b.double()
+    fast = _product_error(a, b, exact)
+    backend.fp32_precision = "ieee"
+    plain = _product_error(a, b, exact)
+    if fast <= 4 * max(plain, 1e-7):
+        backend.fp32_precision = "bf16"
+        return "bf16"
+    return "ieee"
 
 
 def make_adam(cfg: DictConfig, groups: list[dict]) -> torch.optim.Optimizer:

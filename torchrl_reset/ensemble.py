@@ -145,11 +145,17 @@ class _PriorStateCache:
         self._fit(obs, int(slots.max()) + 1, members, width, source)
         stale = ~self.filled[slots] | (self.states[slots] != obs).any(-1)
         if bool(stale.any()):
+            # The whole batch, not only its new rows: a matrix product's rows can come out a few
+            # bits different with the number of rows (BLAS kernels for very few rows), and the
+            # kept values must not depend on how earlier batches were drawn (a resumed run starts
+            # with nothing kept and must reproduce the uninterrupted one).
+            trunk = EnsembleValueOperator._trunk(obs, weights, biases)
             rows = stale.nonzero().squeeze(-1)
             where = slots[rows]
-            self.trunks[:, where] = EnsembleValueOperator._trunk(obs[rows], weights, biases)
+            self.trunks[:, where] = trunk[:, rows]
             self.states[where] = obs[rows]
             self.filled[where] = True
+            return trunk
         return self.trunks[:, slots]
 
 
