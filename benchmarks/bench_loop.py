@@ -17,10 +17,10 @@ Runs, one after the other in the same process:
    method states them; ``TensorDictReplayBuffer``s; torch's default Adam; the trigger evaluated at
    every forward step; the same horizons, heat-up, success check and manual resets.
 
-3. **stock, same products**: the stock loop again with the matrix-product precision the recipe's
-   ``speed.matmul_precision=auto`` chose (only when that is not plain float32: oneDNN's bf16 path,
-   measured as accurate as float32), so that the ratio is also shown for the same arithmetic speed.
-   The target is judged on this stricter ratio when it exists.
+3. **stock, same products**: the stock loop again with its updates' matrix products run as the
+   recipe's ``speed.matmul_precision=auto`` chose for ours (only when that is not plain float32:
+   oneDNN's bf16 path, measured as accurate as float32), so that the ratio is also shown for the
+   same arithmetic speed. The target is judged on this stricter ratio when it exists.
 
 Both record the mean wall time of a step of each phase once both agents made 10 updates (env step,
 policy, trigger, buffer, update). The loops decide their own episode boundaries, so their forward
@@ -31,6 +31,7 @@ run. Writes ``benchmarks/results/loop-<date>.json`` and ``.md``.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import platform
 import sys
 import tempfile
@@ -156,7 +157,10 @@ class NStepWriter:
             self.buffer.add(first)
 
 
-def run_stock(steps: int, heat_up: int, seed: int) -> dict:
+def run_stock(steps: int, heat_up: int, seed: int, update_products: str | None = None) -> dict:
+    """The stock loop; ``update_products`` runs its updates' matrix products as the recipe's
+    ``speed.matmul_precision`` does (``train_utils.matmul_products``), acting left as it is."""
+    products = (lambda: train_utils.matmul_products(update_products)) if update_products else contextlib.nullcontext
     cfg = paper_config("ours", seed=seed)
     torch.manual_seed(seed)
     env = make_env(TASK, seed=seed)
@@ -207,11 +211,12 @@ def run_stock(steps: int, heat_up: int, seed: int) -> dict:
             forward_rb.add(td.clone())
             counters["forward"] += 1
             if counters["forward"] > heat_up:
-                loss_td = loss(forward_rb.sample())
-                optimizer.zero_grad()
-                (loss_td["loss_actor"] + loss_td["loss_value"]).backward()
-                optimizer.step()
-                targets.step()
+                with products():
+                    loss_td = loss(forward_rb.sample())
+                    optimizer.zero_grad()
+                    (loss_td["loss_actor"] + loss_td["loss_value"]).backward()
+                    optimizer.step()
+                    targets.step()
             in_phase += 1
             ended = in_phase >= h_f
         else:
@@ -224,7 +229,8 @@ def run_stock(steps: int, heat_up: int, seed: int) -> dict:
             nstep.add(td.clone(), ended)
             counters["reset"] += 1
             if counters["reset"] > heat_up and len(reset_rb):
-                reset.update(reset_rb.sample(), example_rb.sample()["observation"])
+                with products():
+                    reset.update(reset_rb.sample(), example_rb.sample()["observation"])
         frames += 1
         now = time.perf_counter()
         if min(counters["forward"], counters["reset"]) > heat_up + 10:  # as the recipe: once both made 10 updates
@@ -263,13 +269,8 @@ def main(argv=None) -> dict:
         torch.set_num_threads(args.threads)
     precision = results["ours"]["matmul_precision"]
     if precision != "ieee":
-        print(f"running stock with {precision} products ({args.steps} steps)...", flush=True)
-        previous = torch.backends.mkldnn.matmul.fp32_precision
-        train_utils.set_matmul_precision(precision)
-        try:
-            results[f"stock, {precision} products"] = run_stock(args.steps, args.heat_up, args.seed)
-        finally:
-            torch.backends.mkldnn.matmul.fp32_precision = previous
+        print(f"running stock with {precision} products in its updates ({args.steps} steps)...", flush=True)
+        results[f"stock, {precision} products"] = run_stock(args.steps, args.heat_up, args.seed, update_products=precision)
         torch.set_num_threads(args.threads)
     share = results["ours"]["forward_share"]
     for name, r in results.items():

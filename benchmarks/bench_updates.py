@@ -227,12 +227,11 @@ def main(argv=None) -> dict:
 
     # the recipe's speed.matmul_precision (auto: oneDNN's bf16 path only where it measures as accurate
     # as plain float32); every rate and limit below belongs to the precision its row ran with
-    precision = train_utils.set_matmul_precision(paper_config("ours").speed.matmul_precision)
+    precision = train_utils.choose_matmul_precision(paper_config("ours").speed.matmul_precision)
     rates = {}
     for p in dict.fromkeys(("ieee", precision)):
-        train_utils.set_matmul_precision(p)
-        rates[p] = matmul_rate()
-    train_utils.set_matmul_precision(precision)
+        with train_utils.matmul_products(p):
+            rates[p] = matmul_rate()
     rows = []
     reset_label = "reset RCE update (K = 5, batch 256 + 256 examples, n = 10)"
     cases = [
@@ -244,18 +243,18 @@ def main(argv=None) -> dict:
     if precision != "ieee":
         cases.insert(3, (reset_label + ", plain float32 products", "ours", False, "ieee"))
     for label, kind, compiled, p in cases:
-        train_utils.set_matmul_precision(p)
-        result = time_update(make_update(kind, compiled=compiled), repeats, count_flops=not compiled)
+        with train_utils.matmul_products(p):  # as the recipe runs its updates
+            result = time_update(make_update(kind, compiled=compiled), repeats, count_flops=not compiled)
         if compiled:  # the same arithmetic as the eager row above it
             result["flops"] = rows[-1]["flops"]
         limit_ms = 1000 * result["flops"] / rates[p]
         rows.append({"update": label, "precision": p, **result, "flop_limit_ms": limit_ms,
                      "fraction_of_limit": limit_ms / result["median_ms"]})
-    train_utils.set_matmul_precision(precision)
     scaling = []
     for members in (1, 5, 10, 20):
         for batch in (64, 256, 1024):
-            result = time_update(make_update("ours", members=members, batch=batch), max(5, repeats // 4), warmup=2)
+            with train_utils.matmul_products(precision):
+                result = time_update(make_update("ours", members=members, batch=batch), max(5, repeats // 4), warmup=2)
             scaling.append({"members": members, "batch": batch, **result})
 
     by = {(r["members"], r["batch"]): r["median_ms"] for r in scaling}

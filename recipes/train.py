@@ -34,6 +34,7 @@ from train_utils import (  # noqa: E402
     Checkpoints,
     ConfigError,
     CsvTable,
+    choose_matmul_precision,
     env_kwargs,
     evaluate,
     lnt_batch,
@@ -41,10 +42,10 @@ from train_utils import (  # noqa: E402
     make_forward_agent,
     make_reset_agent,
     make_task_env,
+    matmul_products,
     realtime_env,
     reset_horizon,
     retain_freed_memory,
-    set_matmul_precision,
     UpdateBudget,
     validate,
     with_exploration,
@@ -71,21 +72,13 @@ class TrainingDiverged(RuntimeError):
 
 def train(cfg: DictConfig) -> dict:
     """Run (or resume) one training run; returns the summary also written to ``summary.json``."""
-    previous = torch.backends.mkldnn.matmul.fp32_precision
-    try:
-        return _train(cfg)
-    finally:  # speed.matmul_precision is process-wide: leave it as found
-        torch.backends.mkldnn.matmul.fp32_precision = previous
-
-
-def _train(cfg: DictConfig) -> dict:
     validate(cfg)
     run_dir = Path(cfg.run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
     torch.set_num_threads(int(cfg.threads))
     if cfg.speed.retain_memory:
         retain_freed_memory()
-    matmul_precision = set_matmul_precision(OmegaConf.select(cfg, "speed.matmul_precision", default="ieee"))
+    matmul_precision = choose_matmul_precision(OmegaConf.select(cfg, "speed.matmul_precision", default="ieee"))
     torch.manual_seed(cfg.seed)
     np.random.seed(cfg.seed)
     random.seed(cfg.seed)
@@ -176,6 +169,10 @@ def _train(cfg: DictConfig) -> dict:
         return robot is None or budget.fits(name, robot.time_left())
 
     def update(agent, sample, names) -> dict[str, float]:
+        with matmul_products(matmul_precision):
+            return _update(agent, sample, names)
+
+    def _update(agent, sample, names) -> dict[str, float]:
         started = time.perf_counter()
         losses = losses_of[id(agent)](sample)
         total = sum(losses[name] for name in names)

@@ -269,22 +269,20 @@ def test_fused_soft_update_moves_every_target_by_tau_and_tensor_module_writes_it
         torch.testing.assert_close(now, was + (0.25 if moves else 0.0))  # (1 - tau) t + tau (t + 1) = t + tau
 
 
-def test_matmul_precision_auto_keeps_float32_accuracy_and_each_choice_is_applied():
+def test_matmul_precision_auto_keeps_float32_accuracy_and_products_restore_the_setting():
     backend = torch.backends.mkldnn.matmul
-    previous = backend.fp32_precision
-    try:
-        gen = torch.Generator().manual_seed(3)
-        a, b = torch.randn(128, 400, generator=gen), torch.randn(400, 300, generator=gen)
-        exact = a.double() @ b.double()
+    before = backend.fp32_precision
+    gen = torch.Generator().manual_seed(3)
+    a, b = torch.randn(128, 400, generator=gen), torch.randn(400, 300, generator=gen)
+    exact = a.double() @ b.double()
+    chosen = train_utils.choose_matmul_precision("auto")
+    assert chosen in ("ieee", "bf16") and backend.fp32_precision == before
+    with train_utils.matmul_products(chosen):
+        assert backend.fp32_precision == chosen
         # float32 keeps 24 bits: a product of 400 terms is good to well under 1e-5 of its largest
-        # value, bf16 arithmetic (8 bits) would be off by about 1e-3
-        chosen = train_utils.set_matmul_precision("auto")
-        assert chosen in ("ieee", "bf16") and backend.fp32_precision == chosen
+        # value; bf16 arithmetic (8 bits) would be off by about 1e-3
         assert float(((a @ b).double() - exact).abs().max() / exact.abs().max()) < 1e-5
-        assert train_utils.set_matmul_precision("ieee") == "ieee" and backend.fp32_precision == "ieee"
-        if torch.backends.mkldnn.is_available():
-            assert train_utils.set_matmul_precision("bf16") == "bf16" and backend.fp32_precision == "bf16"
-        with pytest.raises(ValueError, match="matmul precision"):
-            train_utils.set_matmul_precision("fp16")
-    finally:
-        backend.fp32_precision = previous
+    assert backend.fp32_precision == before
+    assert train_utils.choose_matmul_precision("ieee") == "ieee"
+    with pytest.raises(ValueError, match="matmul precision"):
+        train_utils.choose_matmul_precision("fp16")
