@@ -1,9 +1,9 @@
 """Whole-loop throughput on peg-insertion (insert) at the paper's settings, against a stock-TorchRL loop.
 
-    python benchmarks/bench_loop.py                  # 2000 steps per loop, about six minutes on 2 cores
-    python benchmarks/bench_loop.py --steps 600      # a shorter look
+    python benchmarks/bench_loop.py                  # 2 rounds of 2000 steps per loop, about ten minutes on 2 cores
+    python benchmarks/bench_loop.py --steps 600 --rounds 1   # a shorter look
 
-Runs, one after the other in the same process:
+Runs, in the same process, in rounds (each loop once per round, in turn; two rounds by default):
 
 1. **ours**: the training recipe itself (``recipes/train.py``'s ``train``) with the paper's
    settings (400-300 networks, forward batch 64, reset batch 256 + 256 examples, K = 5 classifiers
@@ -252,26 +252,44 @@ def run_stock(steps: int, heat_up: int, seed: int, update_products: str | None =
             "manual_resets": counters["manual_resets"], "triggered_resets": counters["triggered_resets"]}
 
 
+def merge_rounds(runs: list[dict]) -> dict:
+    """One loop's rounds as one record: steps and seconds added, step times the mean over rounds
+    (the loops are seeded, so every round makes the same steps)."""
+    merged = dict(runs[0])
+    merged["rounds"] = len(runs)
+    merged["steps"] = sum(r["steps"] for r in runs)
+    merged["seconds"] = round(sum(r["seconds"] for r in runs), 1)
+    times = [r["step_seconds"] for r in runs]
+    merged["step_seconds"] = {k: (None if any(t[k] is None for t in times) else sum(t[k] for t in times) / len(times))
+                              for k in times[0]}
+    merged["step_seconds_per_round"] = times
+    return merged
+
+
 def main(argv=None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--steps", type=int, default=2000, help="environment steps per loop")
     parser.add_argument("--heat-up", type=int, default=300, help="steps per agent before its updates start")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--rounds", type=int, default=2, help="times each loop runs, in turn with the others")
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results")
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
 
-    results = {}
-    for name, run in (("ours", run_ours), ("stock", run_stock)):
-        print(f"running {name} ({args.steps} steps)...", flush=True)
-        results[name] = run(args.steps, args.heat_up, args.seed)
-        torch.set_num_threads(args.threads)
-    precision = results["ours"]["matmul_precision"]
+    precision = train_utils.choose_matmul_precision(paper_config("ours").speed.matmul_precision)
+    loops = {"ours": run_ours, "stock": run_stock}
     if precision != "ieee":
-        print(f"running stock with {precision} products in its updates ({args.steps} steps)...", flush=True)
-        results[f"stock, {precision} products"] = run_stock(args.steps, args.heat_up, args.seed, update_products=precision)
-        torch.set_num_threads(args.threads)
+        loops[f"stock, {precision} products"] = lambda *a: run_stock(*a, update_products=precision)
+    # rounds of all loops in turn: a slow spell of a shared machine then weighs on every loop alike
+    runs = {name: [] for name in loops}
+    for round_ in range(args.rounds):
+        for name, run in loops.items():
+            print(f"round {round_ + 1}/{args.rounds}: {name} ({args.steps} steps)...", flush=True)
+            runs[name].append(run(args.steps, args.heat_up, args.seed))
+            torch.set_num_threads(args.threads)
+    results = {name: merge_rounds(r) for name, r in runs.items()}
+    assert results["ours"]["matmul_precision"] == precision
     share = results["ours"]["forward_share"]
     for name, r in results.items():
         if None in r["step_seconds"].values():
@@ -294,8 +312,9 @@ def main(argv=None) -> dict:
 
     lines = [f"# Whole-loop throughput, {TASK}, paper settings ({report['machine']['date']})", "",
              f"Machine: {report['machine']['cpu']}, {report['machine']['cores']} cores, {args.threads} torch threads; "
-             f"torch {torch.__version__}, Python {platform.python_version()}. {args.steps} steps per loop, "
-             f"updates after {args.heat_up} steps per agent.", "",
+             f"torch {torch.__version__}, Python {platform.python_version()}. {args.steps} steps per loop and round, "
+             f"{args.rounds} rounds of all loops in turn, updates after {args.heat_up} steps per agent; step times are "
+             "means over the rounds.", "",
              "| loop | raw steps/s | forward share | forward step (ms) | reset step (ms) | steps/s at a common mix |",
              "|---|---|---|---|---|---|"]
     for name, r in results.items():

@@ -78,7 +78,7 @@ class RenderingUnavailableError(RuntimeError):
 _RENDERING_HELP = (
     "Off-screen rendering needs an OpenGL backend. Set MUJOCO_GL=egl (needs libEGL: an NVIDIA driver, or Mesa's "
     "libegl1 and libgl1-mesa-dri) or MUJOCO_GL=osmesa (needs libOSMesa: apt install libosmesa6) before Python "
-    "imports mujoco. Everything except render() works without it."
+    "imports mujoco (importing torchrl imports it). Everything except render() works without it."
 )
 
 

@@ -418,6 +418,9 @@ def test_render_gives_frames_or_a_clear_error_and_the_env_keeps_working():
         assert "MUJOCO_GL" in str(err)
     else:
         assert frame.shape == (48, 64, 3) and frame.dtype == np.uint8 and frame.std() > 0
+        for _ in range(10):  # the cup moves up: the picture changes
+            env.step(np.array([0.0, 1.0]))
+        assert np.abs(env.render().astype(int) - frame.astype(int)).sum() > 0
     env.step(np.zeros(2))
     env.close()
     with pytest.warns(UserWarning, match="render_mode"):  # no render_mode: gymnasium's convention
