@@ -286,3 +286,26 @@ def test_matmul_precision_auto_keeps_float32_accuracy_and_products_restore_the_s
     assert train_utils.choose_matmul_precision("ieee") == "ieee"
     with pytest.raises(ValueError, match="matmul precision"):
         train_utils.choose_matmul_precision("fp16")
+
+
+def test_video_plays_the_evaluation_of_the_latest_checkpoint_into_a_gif(tmp_path):
+    import imageio.v2 as imageio
+    import numpy as np
+    import video
+
+    train.train(config(tmp_path, "task=ball_in_cup_catch", "total_steps=200"))
+    try:
+        info = video.main([str(tmp_path), "--size", "48", "--fps", "10"])
+    except Exception as err:  # no OpenGL backend on this machine: the env says so
+        assert "MUJOCO_GL" in str(err)
+        pytest.skip("no off-screen rendering here")
+    frames = imageio.mimread(tmp_path / "eval.gif")
+    # the first state, one frame per forward step (or the trigger's), one per reset step
+    assert len(frames) == info["frames"] == 1 + info["forward_steps"] + info["triggered"] + info["reset_steps"]
+    assert info["forward_steps"] + info["triggered"] <= 20 and 1 <= info["reset_steps"] <= 40  # H_f = 20, H_r = 2 H_f
+    assert frames[0].shape[:2] == (48, 48)
+    assert tuple(frames[0][0, 24, :3]) == video.COLOURS["forward"]  # the border marks the phase
+    assert tuple(frames[-1][0, 24, :3]) == video.COLOURS["reset"]
+    assert np.abs(frames[1][8:-8, 8:-8, :3].astype(int) - frames[-1][8:-8, 8:-8, :3].astype(int)).sum() > 0
+    with pytest.raises(FileNotFoundError, match="config.yaml"):
+        video.record(tmp_path / "nothing")

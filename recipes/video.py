@@ -1,0 +1,122 @@
+"""An animated GIF of one evaluation of a trained run: a forward episode, then a reset episode.
+
+    MUJOCO_GL=egl python recipes/video.py runs/ball_in_cup_catch-ours-0          # -> <run>/eval.gif
+    MUJOCO_GL=egl python recipes/video.py RUN_DIR --out clip.gif --size 320 --fps 25
+
+Loads the run's saved configuration and its latest checkpoint, and plays the evaluation of the
+training recipe (exploration off, the reset trigger on during the forward episode): the forward
+policy until the trigger fires or H_f steps, then the reset policy until the task's at-initial-state
+check (after the minimum reset steps) or H_r steps. Each frame gets a coloured border: green while
+the forward agent acts, blue while the reset agent acts, red on the step where the trigger stopped
+the forward agent. Rendering is off-screen and needs an OpenGL backend (README, "Rendering"); the
+UR3 tasks have no rendering.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import numpy as np
+import torch
+from omegaconf import OmegaConf
+from torchrl.envs.utils import ExplorationType, set_exploration_type, step_mdp
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from train_utils import (  # noqa: E402
+    Checkpoints,
+    env_kwargs,
+    make_forward_agent,
+    make_reset_agent,
+    make_trigger,
+    reset_horizon,
+)
+
+from torchrl_reset_envs import make_env  # noqa: E402
+
+COLOURS = {"forward": (40, 170, 60), "reset": (40, 90, 220), "trigger": (220, 40, 40)}
+
+
+def framed(frame: np.ndarray, phase: str, width: int = 4) -> np.ndarray:
+    """The frame with a ``width``-pixel border in the colour of ``phase``."""
+    out = frame.copy()
+    colour = np.array(COLOURS[phase], dtype=np.uint8)
+    out[:width], out[-width:], out[:, :width], out[:, -width:] = colour, colour, colour, colour
+    return out
+
+
+def record(run_dir: Path, *, size: int = 240) -> tuple[list[np.ndarray], dict]:
+    """The frames of one evaluation of ``run_dir``'s latest checkpoint, and what happened in it."""
+    config = run_dir / "config.yaml"
+    if not config.exists():
+        raise FileNotFoundError(f"{run_dir} holds no config.yaml: is it a run folder of recipes/train.py?")
+    cfg = OmegaConf.load(config)
+    latest = Checkpoints(run_dir / "checkpoints").latest()
+    if latest is None:
+        raise FileNotFoundError(f"{run_dir / 'checkpoints'} holds no complete checkpoint yet.")
+    if cfg.task.name.startswith("ur3_"):
+        raise ValueError(f"{cfg.task.name} has no rendering (the UR3 twin is simulated without a camera).")
+    env = make_env(cfg.task.name, device="cpu", render_mode="rgb_array", width=size, height=size,
+                   **env_kwargs(cfg, for_eval=True))
+    obs_dim, action_spec = env.observation_spec["observation"].shape[-1], env.action_spec.clone()
+    forward, reset = make_forward_agent(cfg, obs_dim, action_spec), make_reset_agent(cfg, obs_dim, action_spec)
+    state = torch.load(latest / "state.pt", weights_only=False, map_location="cpu")
+    forward.loss.load_state_dict(state["forward_loss"])
+    reset.loss.load_state_dict(state["reset_loss"])
+    trigger = make_trigger(cfg, reset)
+    env.append_transform(trigger)
+    env.set_seed(int(cfg.seed) + 10_000)  # the recipe's evaluation seed
+
+    frames, info = [], {"checkpoint": latest.name, "forward_steps": 0, "triggered": False,
+                        "reset_steps": 0, "reset_success": False}
+    horizon, h_r, min_reset = int(cfg.task.forward_horizon), reset_horizon(cfg), int(cfg.reset.min_steps)
+    td = env.reset()
+    frames.append(framed(env.render(), "forward"))
+    with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
+        trigger.set_enabled(True)
+        for _ in range(horizon):
+            td = env.step(forward.actor(td))
+            if bool(td.get(("next", "reset_trigger")).any()):
+                info["triggered"] = True
+                frames.append(framed(env.render(), "trigger"))
+                break
+            td = step_mdp(td)
+            info["forward_steps"] += 1
+            frames.append(framed(env.render(), "forward"))
+        trigger.set_enabled(False)
+        for _ in range(h_r):
+            td = step_mdp(env.step(reset.actor(td)))
+            info["reset_steps"] += 1
+            frames.append(framed(env.render(), "reset"))
+            if bool(td.get("reset_success").any()) and info["reset_steps"] >= min_reset:
+                info["reset_success"] = True
+                break
+    env.close()
+    return frames, info
+
+
+def main(argv=None) -> dict:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("run_dir", type=Path, help="a run folder written by recipes/train.py")
+    parser.add_argument("--out", type=Path, default=None, help="the GIF to write (default: <run_dir>/eval.gif)")
+    parser.add_argument("--size", type=int, default=240, help="frame width and height in pixels")
+    parser.add_argument("--fps", type=float, default=20.0, help="frames per second of the GIF")
+    args = parser.parse_args(argv)
+    if args.size < 16 or args.fps <= 0:
+        parser.error("--size must be at least 16 and --fps positive")
+    import imageio.v2 as imageio
+
+    frames, info = record(args.run_dir, size=args.size)
+    out = args.out or args.run_dir / "eval.gif"
+    out.parent.mkdir(parents=True, exist_ok=True)
+    imageio.mimsave(out, frames, duration=1000.0 / args.fps, loop=0)
+    info.update(frames=len(frames), path=str(out))
+    print(f"{out}: {len(frames)} frames from {info['checkpoint']}; forward {info['forward_steps']} steps"
+          f"{' (trigger fired)' if info['triggered'] else ''}, reset {info['reset_steps']} steps"
+          f" ({'reached the start' if info['reset_success'] else 'did not reach the start'}).")
+    return info
+
+
+if __name__ == "__main__":
+    main()
