@@ -374,9 +374,17 @@ def realtime_env(env: TransformedEnv):
 
 # ------------------------------------------------------------------------------------------ evaluation
 def evaluate(env: TransformedEnv, trigger: ResetTriggerTransform, forward_actor, reset_actor, *, horizon: int,
-             reset_horizon: int, min_reset_steps: int, gamma: float) -> dict[str, Any]:
-    """One forward and one reset episode with exploration off, from ``env.reset()`` (method.md section 7)."""
+             reset_horizon: int, min_reset_steps: int, gamma: float,
+             observe: Callable[[str], None] | None = None) -> dict[str, Any]:
+    """One forward and one reset episode with exploration off, from ``env.reset()`` (method.md section 7).
+
+    ``observe(phase)``, when given, is called after the reset and after every step, with ``phase``
+    ``"forward"``, ``"trigger"`` (the step the trigger stopped) or ``"reset"`` (recipes/video.py
+    renders there).
+    """
+    seen = observe or (lambda phase: None)
     td = env.reset()
+    seen("forward")
     ret, forward_steps, triggered = 0.0, 0, False
     with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
         trigger.set_enabled(True)
@@ -384,15 +392,18 @@ def evaluate(env: TransformedEnv, trigger: ResetTriggerTransform, forward_actor,
             td = env.step(forward_actor(td))
             if bool(td.get(("next", "reset_trigger")).any()):
                 triggered = True
+                seen("trigger")
                 break
             ret += gamma**t * float(td.get(("next", "reward")))
             forward_steps += 1
             td = step_mdp(td)
+            seen("forward")
         trigger.set_enabled(False)
         success, reset_steps = False, 0
         for t in range(reset_horizon):
             td = step_mdp(env.step(reset_actor(td)))
             reset_steps += 1
+            seen("reset")
             if bool(td.get("reset_success").any()) and reset_steps >= min_reset_steps:
                 success = True
                 break

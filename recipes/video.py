@@ -20,13 +20,13 @@ from pathlib import Path
 import numpy as np
 import torch
 from omegaconf import OmegaConf
-from torchrl.envs.utils import ExplorationType, set_exploration_type, step_mdp
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from train_utils import (  # noqa: E402
     Checkpoints,
     env_kwargs,
+    evaluate,
     make_forward_agent,
     make_reset_agent,
     make_trigger,
@@ -68,30 +68,11 @@ def record(run_dir: Path, *, size: int = 240) -> tuple[list[np.ndarray], dict]:
     env.append_transform(trigger)
     env.set_seed(int(cfg.seed) + 10_000)  # the recipe's evaluation seed
 
-    frames, info = [], {"checkpoint": latest.name, "forward_steps": 0, "triggered": False,
-                        "reset_steps": 0, "reset_success": False}
-    horizon, h_r, min_reset = int(cfg.task.forward_horizon), reset_horizon(cfg), int(cfg.reset.min_steps)
-    td = env.reset()
-    frames.append(framed(env.render(), "forward"))
-    with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
-        trigger.set_enabled(True)
-        for _ in range(horizon):
-            td = env.step(forward.actor(td))
-            if bool(td.get(("next", "reset_trigger")).any()):
-                info["triggered"] = True
-                frames.append(framed(env.render(), "trigger"))
-                break
-            td = step_mdp(td)
-            info["forward_steps"] += 1
-            frames.append(framed(env.render(), "forward"))
-        trigger.set_enabled(False)
-        for _ in range(h_r):
-            td = step_mdp(env.step(reset.actor(td)))
-            info["reset_steps"] += 1
-            frames.append(framed(env.render(), "reset"))
-            if bool(td.get("reset_success").any()) and info["reset_steps"] >= min_reset:
-                info["reset_success"] = True
-                break
+    frames = []
+    info = evaluate(env, trigger, forward.actor, reset.actor, horizon=int(cfg.task.forward_horizon),
+                    reset_horizon=reset_horizon(cfg), min_reset_steps=int(cfg.reset.min_steps), gamma=float(cfg.gamma),
+                    observe=lambda phase: frames.append(framed(env.render(), phase)))
+    info["checkpoint"] = latest.name
     env.close()
     return frames, info
 
