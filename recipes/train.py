@@ -32,6 +32,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from train_utils import (  # noqa: E402
     Checkpoints,
+    buffer_keys,
     ConfigError,
     CsvTable,
     choose_matmul_precision,
@@ -104,6 +105,7 @@ def train(cfg: DictConfig) -> dict:
     collector.set_seed(int(cfg.seed))
     eval_env.set_seed(int(cfg.seed) + 10_000)
     forward_rb, reset_rb = make_buffers(cfg)
+    forward_keys, reset_keys = buffer_keys(cfg, forward, reset)
     checkpoints = Checkpoints(run_dir / "checkpoints", keep=int(cfg.keep_checkpoints))
     progress = CsvTable(run_dir / "progress.csv", PROGRESS_FIELDS)
     evals = CsvTable(run_dir / "eval.csv", EVAL_FIELDS)
@@ -218,12 +220,12 @@ def train(cfg: DictConfig) -> dict:
             updating = collector.counters[f"{phase}_steps"] > heat_up
             timed = min(collector.counters["forward_steps"], collector.counters["reset_steps"]) > heat_up + warm_up_updates
             if phase == "forward":
-                forward_rb.extend(batch)
+                forward_rb.extend(batch.select(*forward_keys, strict=False))
                 if updating and fits("forward"):
                     out = update(forward, forward_rb.sample(), ("loss_actor", "loss_value"))
                     history["last_losses"].update(loss_forward_actor=out["loss_actor"], loss_forward_critic=out["loss_value"])
             else:
-                reset_rb.extend(batch)
+                reset_rb.extend(batch.select(*reset_keys, strict=False))
                 if updating and fits("reset"):
                     sample = reset_rb.sample().to(cfg.device)
                     if cfg.algo.name == "ours":
