@@ -7,7 +7,8 @@ Measures, in one run:
 1. the machine's matrix-multiply rate (float32, 1024 x 1024 products, the best of several runs),
    with plain float32 products and, where the recipe's ``speed.matmul_precision=auto`` picks it,
    with oneDNN's bf16 path;
-2. one whole update, as the training recipe runs it, with its speed settings (fused Adam, freed
+2. in three rounds of all of them in turn (a slow spell of a shared machine then weighs on every
+   row alike), one whole update, as the training recipe runs it, with its speed settings (fused Adam, freed
    memory kept, the matrix-product precision ``auto`` chose; the RCE update also with plain
    float32 products): the replay sample from the recipe's buffers (and the success-example sample),
    the loss, backward, the optimizer step and the target update, for the forward DDPG agent
@@ -158,14 +159,9 @@ class CountFlops(TorchDispatchMode):
         return out
 
 
-def time_update(update, repeats: int, warmup: int = 20, warmup_seconds: float = 1.0, rest_seconds: float = 2.0,
-                count_flops: bool = True) -> dict:
-    """Median and minimum wall time of ``update`` over ``repeats`` calls, after ``rest_seconds`` idle
-    and at least ``warmup`` calls and ``warmup_seconds`` of them (caches, allocator and thread pool
-    settled). The rest keeps one measurement from running in the wake of the one before: right after
-    the one-second matrix-multiply rate run, the forward update measured 4.8 ms on these machines,
-    3.5 ms after two idle seconds."""
-    time.sleep(rest_seconds)
+def run_timed(update, repeats: int, warmup: int = 20, warmup_seconds: float = 1.0) -> list[float]:
+    """Wall times of ``repeats`` calls of ``update``, after at least ``warmup`` calls and
+    ``warmup_seconds`` of them (caches, allocator and thread pool settled)."""
     deadline = time.perf_counter() + warmup_seconds
     done = 0
     while done < warmup or time.perf_counter() < deadline:
@@ -176,12 +172,24 @@ def time_update(update, repeats: int, warmup: int = 20, warmup_seconds: float = 
         start = time.perf_counter()
         update()
         times.append(time.perf_counter() - start)
-    flops = None
-    if count_flops:
-        with CountFlops() as counter:
-            update()
-        flops = counter.total
-    return {"median_ms": 1000 * statistics.median(times), "min_ms": 1000 * min(times), "flops": flops}
+    return times
+
+
+def count_flops(update) -> int:
+    with CountFlops() as counter:
+        update()
+    return counter.total
+
+
+def summary(times: list[float]) -> dict:
+    return {"median_ms": 1000 * statistics.median(times), "min_ms": 1000 * min(times)}
+
+
+def time_update(update, repeats: int, warmup: int = 5, with_flops: bool = True) -> dict:
+    """Median and minimum wall time of ``update`` over ``repeats`` calls after ``warmup`` calls, and its FLOPs."""
+    result = summary(run_timed(update, repeats, warmup=warmup, warmup_seconds=0.0))
+    result["flops"] = count_flops(update) if with_flops else None
+    return result
 
 
 def matmul_rate(seconds: float = 1.0, n: int = 1024) -> float:
@@ -228,6 +236,7 @@ def main(argv=None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--quick", action="store_true", help="fewer repetitions")
     parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--rounds", type=int, default=3, help="rounds of all updates in turn")
     parser.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results")
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
@@ -252,11 +261,21 @@ def main(argv=None) -> dict:
     ]
     if precision != "ieee":
         cases.insert(3, (reset_label + ", plain float32 products", "ours", False, "ieee"))
-    for label, kind, compiled, p in cases:
-        with train_utils.matmul_products(p):  # as the recipe runs its updates
-            result = time_update(make_update(kind, compiled=compiled), repeats, count_flops=not compiled)
+    # In rounds: every update is timed a third of its repeats per round, the updates in turn, so that
+    # a slow spell of the shared machine weighs on all of them alike rather than on one row.
+    updates = [make_update(kind, compiled=compiled) for _, kind, compiled, _ in cases]
+    times = [[] for _ in cases]
+    for _ in range(args.rounds):
+        for i, (_, _, _, p) in enumerate(cases):
+            with train_utils.matmul_products(p):  # as the recipe runs its updates
+                times[i] += run_timed(updates[i], max(1, repeats // args.rounds))
+    for i, (label, kind, compiled, p) in enumerate(cases):
+        result = summary(times[i])
         if compiled:  # the same arithmetic as the eager row above it
             result["flops"] = rows[-1]["flops"]
+        else:
+            with train_utils.matmul_products(p):
+                result["flops"] = count_flops(updates[i])
         limit_ms = 1000 * result["flops"] / rates[p]
         rows.append({"update": label, "precision": p, **result, "flop_limit_ms": limit_ms,
                      "fraction_of_limit": limit_ms / result["median_ms"]})
@@ -264,8 +283,7 @@ def main(argv=None) -> dict:
     for members in (1, 5, 10, 20):
         for batch in (64, 256, 1024):
             with train_utils.matmul_products(precision):
-                result = time_update(make_update("ours", members=members, batch=batch), max(5, repeats // 4), warmup=2,
-                                 warmup_seconds=0.0, rest_seconds=0.0)
+                result = time_update(make_update("ours", members=members, batch=batch), max(5, repeats // 4), warmup=2)
             scaling.append({"members": members, "batch": batch, **result})
 
     by = {(r["members"], r["batch"]): r["median_ms"] for r in scaling}
