@@ -105,13 +105,12 @@ class _PriorStateCache:
     max_slots = 1 << 14  # about 100 MB at K = 5, 300 units; slots past it are computed each time
 
     def __init__(self) -> None:
-        self.states: torch.Tensor | None = None
+        self.states: torch.Tensor | None = None  # NaN in a slot never filled: it matches no state
         self.trunks: torch.Tensor | None = None
-        self.filled: torch.Tensor | None = None
         self.source: tuple | None = None
 
     def clear(self) -> None:
-        self.states = self.trunks = self.filled = self.source = None
+        self.states = self.trunks = self.source = None
 
     def _fit(self, obs: torch.Tensor, size: int, members: int, width: int, source: tuple) -> None:
         fresh = (
@@ -131,23 +130,22 @@ class _PriorStateCache:
         if size <= capacity:
             return
         new_capacity = min(self.max_slots, max(256, 1 << (size - 1).bit_length()))
-        states = obs.new_empty(new_capacity, obs.shape[-1])
+        states = obs.new_full((new_capacity, obs.shape[-1]), float("nan"))
         trunks = obs.new_empty(members, new_capacity, width)
-        filled = torch.zeros(new_capacity, dtype=torch.bool, device=obs.device)
         if capacity:
             states[:capacity] = self.states
             trunks[:, :capacity] = self.trunks
-            filled[:capacity] = self.filled
-        self.states, self.trunks, self.filled, self.source = states, trunks, filled, source
+        self.states, self.trunks, self.source = states, trunks, source
 
     def lookup(self, obs: torch.Tensor, slots: torch.Tensor, weights: list[torch.Tensor], biases: list[torch.Tensor]) -> torch.Tensor:
         """The prior trunk [M, N, h1] of ``obs`` [N, d], whose rows sit in ``slots`` [N]."""
         members, width = weights[1].shape[0], weights[1].shape[-1]
-        if slots.numel() == 0 or int(slots.min()) < 0 or int(slots.max()) >= self.max_slots:
+        low, high = (int(v) for v in torch.aminmax(slots)) if slots.numel() else (-1, -1)
+        if low < 0 or high >= self.max_slots:
             return EnsembleValueOperator._trunk(obs, weights, biases)
         source = tuple((t.data_ptr(), t._version) for t in (*weights[:2], *biases[:2]))
-        self._fit(obs, int(slots.max()) + 1, members, width, source)
-        stale = ~self.filled[slots] | (self.states[slots] != obs).any(-1)
+        self._fit(obs, high + 1, members, width, source)
+        stale = (self.states[slots] != obs).any(-1)  # NaN (never filled) compares unequal
         if bool(stale.any()):
             # The whole batch, not only its new rows: a matrix product's rows can come out a few
             # bits different with the number of rows (BLAS kernels for very few rows), and the
@@ -158,7 +156,6 @@ class _PriorStateCache:
             where = slots[rows]
             self.trunks[:, where] = trunk[:, rows]
             self.states[where] = obs[rows]
-            self.filled[where] = True
             return trunk
         return self.trunks[:, slots]
 
