@@ -35,8 +35,8 @@ from train_utils import (  # noqa: E402
     buffer_keys,
     ConfigError,
     CsvTable,
+    EVAL_SEED_OFFSET,
     choose_matmul_precision,
-    env_kwargs,
     evaluate,
     lnt_batch,
     make_buffers,
@@ -47,13 +47,13 @@ from train_utils import (  # noqa: E402
     realtime_env,
     reset_horizon,
     retain_freed_memory,
+    task_dimensions,
     UpdateBudget,
     validate,
     with_exploration,
 )
 
 from torchrl_reset import DualCollector  # noqa: E402
-from torchrl_reset_envs import make_env  # noqa: E402
 
 PROGRESS_FIELDS = [
     "frames", "forward_steps", "reset_steps", "forward_episodes", "reset_episodes", "manual_resets",
@@ -103,7 +103,7 @@ def train(cfg: DictConfig) -> dict:
         total_frames=int(cfg.total_steps),
     )
     collector.set_seed(int(cfg.seed))
-    eval_env.set_seed(int(cfg.seed) + 10_000)
+    eval_env.set_seed(int(cfg.seed) + EVAL_SEED_OFFSET)
     forward_rb, reset_rb = make_buffers(cfg)
     forward_keys, reset_keys = buffer_keys(cfg, forward, reset)
     checkpoints = Checkpoints(run_dir / "checkpoints", keep=int(cfg.keep_checkpoints))
@@ -296,14 +296,6 @@ def train(cfg: DictConfig) -> dict:
         if callable(finish):  # wandb: close the run so its files are complete
             finish()
     return summary
-
-
-def task_dimensions(cfg: DictConfig):
-    """Observation size and action spec of the task (from a throw-away env)."""
-    env = make_env(cfg.task.name, **env_kwargs(cfg, for_eval=True))
-    out = env.observation_spec["observation"].shape[-1], env.action_spec.clone()
-    env.close()
-    return out
 
 
 def make_loggers(cfg: DictConfig, run_dir: Path) -> list:

@@ -316,8 +316,23 @@ def env_kwargs(cfg: DictConfig, *, for_eval: bool = False) -> dict:
     return kwargs
 
 
-def make_task_env(cfg: DictConfig, reset_agent: Agent, *, for_eval: bool = False) -> tuple[TransformedEnv, ResetTriggerTransform]:
-    env = make_env(cfg.task.name, device=cfg.device, **env_kwargs(cfg, for_eval=for_eval))
+#: the evaluation env is seeded ``cfg.seed + EVAL_SEED_OFFSET``, apart from the training env
+EVAL_SEED_OFFSET = 10_000
+
+
+def task_dimensions(cfg: DictConfig):
+    """Observation size and action spec of the task (from a throw-away env)."""
+    env = make_env(cfg.task.name, **env_kwargs(cfg, for_eval=True))
+    out = env.observation_spec["observation"].shape[-1], env.action_spec.clone()
+    env.close()
+    return out
+
+
+def make_task_env(cfg: DictConfig, reset_agent: Agent, *, for_eval: bool = False,
+                  **options) -> tuple[TransformedEnv, ResetTriggerTransform]:
+    """The task's env with the reset trigger of ``reset_agent``; ``options`` go to ``make_env``
+    (``render_mode``, ``width``...)."""
+    env = make_env(cfg.task.name, device=cfg.device, **env_kwargs(cfg, for_eval=for_eval), **options)
     trigger = make_trigger(cfg, reset_agent)
     env.append_transform(trigger)
     return env, trigger

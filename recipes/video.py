@@ -24,16 +24,15 @@ from omegaconf import OmegaConf
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from train_utils import (  # noqa: E402
+    EVAL_SEED_OFFSET,
     Checkpoints,
-    env_kwargs,
     evaluate,
     make_forward_agent,
     make_reset_agent,
-    make_trigger,
+    make_task_env,
     reset_horizon,
+    task_dimensions,
 )
-
-from torchrl_reset_envs import make_env  # noqa: E402
 
 COLOURS = {"forward": (40, 170, 60), "reset": (40, 90, 220), "trigger": (220, 40, 40)}
 
@@ -55,18 +54,15 @@ def record(run_dir: Path, *, size: int = 240) -> tuple[list[np.ndarray], dict]:
     latest = Checkpoints(run_dir / "checkpoints").latest()
     if latest is None:
         raise FileNotFoundError(f"{run_dir / 'checkpoints'} holds no complete checkpoint yet.")
-    if cfg.task.name.startswith("ur3_"):
-        raise ValueError(f"{cfg.task.name} has no rendering (the UR3 twin is simulated without a camera).")
-    env = make_env(cfg.task.name, device="cpu", render_mode="rgb_array", width=size, height=size,
-                   **env_kwargs(cfg, for_eval=True))
-    obs_dim, action_spec = env.observation_spec["observation"].shape[-1], env.action_spec.clone()
+    cfg.device = "cpu"
+    obs_dim, action_spec = task_dimensions(cfg)
     forward, reset = make_forward_agent(cfg, obs_dim, action_spec), make_reset_agent(cfg, obs_dim, action_spec)
     state = torch.load(latest / "state.pt", weights_only=False, map_location="cpu")
     forward.loss.load_state_dict(state["forward_loss"])
     reset.loss.load_state_dict(state["reset_loss"])
-    trigger = make_trigger(cfg, reset)
-    env.append_transform(trigger)
-    env.set_seed(int(cfg.seed) + 10_000)  # the recipe's evaluation seed
+    # make_env refuses render_mode for the UR3 tasks (no camera on the twin)
+    env, trigger = make_task_env(cfg, reset, for_eval=True, render_mode="rgb_array", width=size, height=size)
+    env.set_seed(int(cfg.seed) + EVAL_SEED_OFFSET)  # as the recipe's evaluation env
 
     frames = []
     info = evaluate(env, trigger, forward.actor, reset.actor, horizon=int(cfg.task.forward_horizon),

@@ -203,7 +203,7 @@ def test_lnt_reset_loss_gives_each_member_its_own_td_target(tmp_path):
     from tensordict import TensorDict
 
     cfg = config(tmp_path, "task=peg_insertion_insert", "algo=lnt")
-    spec = train.make_env("peg_insertion_insert").action_spec
+    spec = train_utils.make_env("peg_insertion_insert").action_spec
     agent = train_utils.make_reset_agent(cfg, 14, spec)
     k, b = cfg.algo.num_members, 6
     td = TensorDict({
@@ -239,7 +239,7 @@ def test_realtime_env_is_found_only_on_a_real_time_backend():
 
     from torchrl_reset_envs import UR3Env
 
-    assert train_utils.realtime_env(train.make_env("ur3_peg")) is None
+    assert train_utils.realtime_env(train_utils.make_env("ur3_peg")) is None
     robot = UR3Env("peg", backend=ClockedBackend(FakeClock()), manual_reset=lambda env: None)
     assert train_utils.realtime_env(TransformedEnv(robot)) is robot
 
