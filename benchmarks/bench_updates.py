@@ -2,6 +2,7 @@
 
     python benchmarks/bench_updates.py                 # paper sizes + scaling, about two minutes on 2 cores
     python benchmarks/bench_updates.py --quick         # fewer repetitions
+    python benchmarks/bench_updates.py --device cuda   # on a GPU: networks and batches there, timings synchronized
 
 Measures, in one run:
 1. the machine's matrix-multiply rate (float32, 1024 x 1024 products, the best of several runs),
@@ -12,7 +13,8 @@ Measures, in one run:
    memory kept, the matrix-product precision ``auto`` chose; the RCE update also with plain
    float32 products): the replay sample from the recipe's buffers (and the success-example sample),
    the loss, backward, the optimizer step and the target update, for the forward DDPG agent
-   (batch 64; eager, the recipe's default, and through ``torch.compile``), the RCE reset agent
+   (batch 64; eager, the recipe's default, through ``torch.compile``, and with torchrl's own
+   ``DDPGLoss`` in place of the recipe's ``DirectDDPGLoss`` for comparison), the RCE reset agent
    (K = 5, batch 256 + 256 examples, n = 10, priors) and the LNT reset agent (K = 20, batch 256),
    with the networks of the paper (400-300) on peg-insertion's sizes (14 observations, 7 actions).
    Beside each: its FLOPs (counted with ``torch.utils.flop_counter``'s formulas while it runs),
@@ -34,6 +36,7 @@ import sys
 import time
 from datetime import datetime, timezone
 from pathlib import Path
+from typing import Callable
 
 import torch
 from hydra import compose, initialize_config_dir
@@ -95,14 +98,17 @@ def filled_buffers(cfg, transitions: int = 5000):
     return forward_rb, reset_rb, examples
 
 
-def make_update(kind: str, *, members: int | None = None, batch: int | None = None, compiled: bool | None = None):
+def make_update(kind: str, *, members: int | None = None, batch: int | None = None, compiled: bool | None = None,
+                device: str = "cpu", stock_loss: bool = False):
     """A closure running one whole update of ``kind`` (forward, ours, lnt) as the recipe runs it.
 
     Everything one step of that agent costs: the replay sample (and the success-example sample),
-    the loss, backward, the optimizer step and the target update. ``compiled`` overrides the
-    recipe's ``speed.compile`` choice for this agent.
+    moved to ``device`` as the recipe moves it, the loss, backward, the optimizer step and the
+    target update. ``compiled`` overrides the recipe's ``speed.compile`` choice for this agent.
+    ``stock_loss`` (forward only) swaps the recipe's loss for torchrl's own ``DDPGLoss`` on the
+    same networks, for comparison.
     """
-    overrides = {} if members is None else {"algo.num_members": members}
+    overrides = {"device": device} if members is None else {"algo.num_members": members, "device": device}
     for key, size in (("forward.batch_size", batch if kind == "forward" else None),
                       ("reset.batch_size", batch if kind != "forward" else None)):
         if size is not None:
@@ -111,20 +117,32 @@ def make_update(kind: str, *, members: int | None = None, batch: int | None = No
     forward_rb, reset_rb, examples = filled_buffers(cfg)
     if kind == "forward":
         agent = train_utils.make_forward_agent(cfg, OBS, action_spec())
+        if stock_loss:
+            from torchrl.objectives import DDPGLoss
+
+            old = agent.loss
+            agent.loss = DDPGLoss(old.actor_network, old.value_network, delay_actor=True, delay_value=True)
+            agent.loss.make_value_estimator(gamma=cfg.gamma)
+            agent.optimizer = train_utils.make_adam(cfg, [
+                {"params": list(agent.loss.actor_network_params.values(True, True)), "lr": cfg.forward.actor_lr},
+                {"params": list(agent.loss.value_network_params.values(True, True)), "lr": cfg.forward.critic_lr},
+            ])
+            agent.targets = train_utils.FusedSoftUpdate(agent.loss, tau=cfg.tau)
         names = ("loss_actor", "loss_value")
     else:
         agent = train_utils.make_reset_agent(cfg, OBS, action_spec())
         names = ("loss_actor", "loss_classifier") if kind == "ours" else ("loss_actor", "loss_value")
+    agent.loss.to(device)  # as the recipe does
     agent_name = "forward" if kind == "forward" else "reset"
     use_compile = agent_name in set(cfg.speed.compile) if compiled is None else compiled
     loss = torch.compile(agent.loss) if use_compile else agent.loss
 
     def sample():
         if kind == "forward":
-            return forward_rb.sample()
-        td = reset_rb.sample()
+            return forward_rb.sample().to(device)
+        td = reset_rb.sample().to(device)
         if kind == "ours":
-            td.set("example", examples.sample(td.shape[0]))
+            td.set("example", examples.sample(td.shape[0]).to(device))
             return td
         return train_utils.lnt_batch(td, cfg.algo, cfg.algo.num_members)
 
@@ -159,18 +177,28 @@ class CountFlops(TorchDispatchMode):
         return out
 
 
-def run_timed(update, repeats: int, warmup: int = 20, warmup_seconds: float = 1.0) -> list[float]:
-    """Wall times of ``repeats`` calls of ``update``, after at least ``warmup`` calls and
-    ``warmup_seconds`` of them (caches, allocator and thread pool settled)."""
+def synchronizer(device) -> Callable[[], None]:
+    """What waits for ``device``'s queued work: a timed call must include it (nothing on CPU)."""
+    device = torch.device(device)
+    return (lambda: torch.cuda.synchronize(device)) if device.type == "cuda" else (lambda: None)
+
+
+def run_timed(update, repeats: int, warmup: int = 20, warmup_seconds: float = 1.0, device="cpu") -> list[float]:
+    """Wall times of ``repeats`` calls of ``update`` (each up to the end of its work on ``device``),
+    after at least ``warmup`` calls and ``warmup_seconds`` of them (caches, allocator and thread
+    pool settled)."""
+    sync = synchronizer(device)
     deadline = time.perf_counter() + warmup_seconds
     done = 0
     while done < warmup or time.perf_counter() < deadline:
         update()
         done += 1
+    sync()
     times = []
     for _ in range(repeats):
         start = time.perf_counter()
         update()
+        sync()
         times.append(time.perf_counter() - start)
     return times
 
@@ -185,28 +213,34 @@ def summary(times: list[float]) -> dict:
     return {"median_ms": 1000 * statistics.median(times), "min_ms": 1000 * min(times)}
 
 
-def time_update(update, repeats: int, warmup: int = 5, with_flops: bool = True) -> dict:
+def time_update(update, repeats: int, warmup: int = 5, with_flops: bool = True, device="cpu") -> dict:
     """Median and minimum wall time of ``update`` over ``repeats`` calls after ``warmup`` calls, and its FLOPs."""
-    result = summary(run_timed(update, repeats, warmup=warmup, warmup_seconds=0.0))
+    result = summary(run_timed(update, repeats, warmup=warmup, warmup_seconds=0.0, device=device))
     result["flops"] = count_flops(update) if with_flops else None
     return result
 
 
-def matmul_rate(seconds: float = 1.0, n: int = 1024) -> float:
-    a, b = torch.randn(n, n), torch.randn(n, n)
+def matmul_rate(seconds: float = 1.0, n: int = 1024, device="cpu") -> float:
+    """The best float32 matrix-multiply rate (FLOP/s) of ``n x n`` products on ``device``; on a GPU
+    larger products (4096) are used, as 1024 ones leave it mostly idle."""
+    sync = synchronizer(device)
+    n = 4096 if torch.device(device).type == "cuda" else n
+    a, b = torch.randn(n, n, device=device), torch.randn(n, n, device=device)
     for _ in range(3):
         a @ b
+    sync()
     best = 0.0
     deadline = time.perf_counter() + seconds
     while time.perf_counter() < deadline:
         start = time.perf_counter()
         for _ in range(5):
             a @ b
+        sync()
         best = max(best, 5 * 2 * n**3 / (time.perf_counter() - start))
     return best
 
 
-def machine() -> dict:
+def machine(device="cpu") -> dict:
     cpu = platform.processor() or platform.machine()
     try:
         for line in Path("/proc/cpuinfo").read_text().splitlines():
@@ -215,8 +249,31 @@ def machine() -> dict:
                 break
     except OSError:
         pass
-    return {"cpu": cpu, "cores": os.cpu_count(), "torch_threads": torch.get_num_threads(), "python": platform.python_version(),
-            "torch": torch.__version__, "torchrl": torchrl.__version__, "date": datetime.now(timezone.utc).isoformat(timespec="seconds")}
+    info = {"cpu": cpu, "cores": os.cpu_count(), "torch_threads": torch.get_num_threads(), "python": platform.python_version(),
+            "torch": torch.__version__, "torchrl": torchrl.__version__, "date": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+            "device": str(device)}
+    if torch.device(device).type == "cuda":
+        info["gpu"] = torch.cuda.get_device_name(device)
+    return info
+
+
+def describe(info: dict, threads: int) -> str:
+    """The machine line of a results table."""
+    where = f"{info['cpu']}, {info['cores']} cores, {threads} torch threads"
+    if "gpu" in info:
+        where = f"{info['gpu']} ({info['device']}); host {where}"
+    return f"Machine: {where}; torch {info['torch']}, torchrl {info['torchrl']}, Python {info['python']}."
+
+
+def check_device(device: str) -> str:
+    """``device`` if this machine has it, else a clear exit."""
+    kind = torch.device(device).type
+    if kind == "cuda" and not torch.cuda.is_available():
+        raise SystemExit(f"--device {device}: this machine has no CUDA device (torch {torch.__version__}, "
+                         f"CUDA build: {torch.version.cuda or 'no'}).")
+    if kind not in ("cpu", "cuda"):
+        raise SystemExit(f"--device {device}: only cpu and cuda devices are benchmarked.")
+    return device
 
 
 def write_results(folder: Path, name: str, report: dict, text: str) -> None:
@@ -237,42 +294,48 @@ def main(argv=None) -> dict:
     parser.add_argument("--quick", action="store_true", help="fewer repetitions")
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--rounds", type=int, default=3, help="rounds of all updates in turn")
+    parser.add_argument("--device", default="cpu", help="cpu or cuda[:N]: where the networks and batches live")
     parser.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results")
     args = parser.parse_args(argv)
+    device = check_device(args.device)
     torch.set_num_threads(args.threads)
     torch.manual_seed(0)
     train_utils.retain_freed_memory()  # as the recipe does (speed.retain_memory)
     repeats = 20 if args.quick else 60
 
     # the recipe's speed.matmul_precision (auto: oneDNN's bf16 path only where it measures as accurate
-    # as plain float32); every rate and limit below belongs to the precision its row ran with
-    precision = train_utils.choose_matmul_precision(paper_config("ours").speed.matmul_precision)
+    # as plain float32; a CPU setting); every rate and limit below belongs to the precision its row ran with
+    on_cpu = torch.device(device).type == "cpu"
+    precision = train_utils.choose_matmul_precision(paper_config("ours").speed.matmul_precision) if on_cpu else "ieee"
     rates = {}
     for p in dict.fromkeys(("ieee", precision)):
         with train_utils.matmul_products(p):
-            rates[p] = matmul_rate()
+            rates[p] = matmul_rate(device=device)
     rows = []
     reset_label = "reset RCE update (K = 5, batch 256 + 256 examples, n = 10)"
+    # (label, kind, compiled, products, torchrl's own DDPGLoss)
     cases = [
-        ("forward DDPG update (batch 64), eager", "forward", False, precision),
-        ("forward DDPG update (batch 64), torch.compile", "forward", True, precision),
-        (reset_label, "ours", False, precision),
-        ("reset LNT update (K = 20, batch 256)", "lnt", False, precision),
+        ("forward DDPG update (batch 64), eager", "forward", False, precision, False),
+        ("forward DDPG update (batch 64), torch.compile", "forward", True, precision, False),
+        ("forward DDPG update (batch 64), eager, torchrl's DDPGLoss", "forward", False, precision, True),
+        (reset_label, "ours", False, precision, False),
+        ("reset LNT update (K = 20, batch 256)", "lnt", False, precision, False),
     ]
     if precision != "ieee":
-        cases.insert(3, (reset_label + ", plain float32 products", "ours", False, "ieee"))
+        cases.insert(4, (reset_label + ", plain float32 products", "ours", False, "ieee", False))
     # In rounds: every update is timed a third of its repeats per round, the updates in turn, so that
     # a slow spell of the shared machine weighs on all of them alike rather than on one row.
-    updates = [make_update(kind, compiled=compiled) for _, kind, compiled, _ in cases]
+    updates = [make_update(kind, compiled=compiled, device=device, stock_loss=stock)
+               for _, kind, compiled, _, stock in cases]
     times = [[] for _ in cases]
     for _ in range(args.rounds):
-        for i, (_, _, _, p) in enumerate(cases):
-            with train_utils.matmul_products(p):  # as the recipe runs its updates
-                times[i] += run_timed(updates[i], max(1, repeats // args.rounds))
-    for i, (label, kind, compiled, p) in enumerate(cases):
+        for i, case in enumerate(cases):
+            with train_utils.matmul_products(case[3]):  # as the recipe runs its updates
+                times[i] += run_timed(updates[i], max(1, repeats // args.rounds), device=device)
+    for i, (label, kind, compiled, p, _) in enumerate(cases):
         result = summary(times[i])
-        if compiled:  # the same arithmetic as the eager row above it
-            result["flops"] = rows[-1]["flops"]
+        if kind == "forward" and i > 0:  # the same arithmetic as the first row
+            result["flops"] = rows[0]["flops"]
         else:
             with train_utils.matmul_products(p):
                 result["flops"] = count_flops(updates[i])
@@ -283,11 +346,12 @@ def main(argv=None) -> dict:
     for members in (1, 5, 10, 20):
         for batch in (64, 256, 1024):
             with train_utils.matmul_products(precision):
-                result = time_update(make_update("ours", members=members, batch=batch), max(5, repeats // 4), warmup=2)
+                result = time_update(make_update("ours", members=members, batch=batch, device=device),
+                                     max(5, repeats // 4), warmup=2, device=device)
             scaling.append({"members": members, "batch": batch, **result})
 
     by = {(r["members"], r["batch"]): r["median_ms"] for r in scaling}
-    forward, compiled, ours = rows[0], rows[1], rows[2]  # the recipe's defaults: both losses eager
+    forward, compiled, stock_forward, ours = rows[0], rows[1], rows[2], rows[3]  # the recipe's defaults: both losses eager
     targets = [
         ("reset RCE update <= 35 ms", ours["median_ms"], ours["median_ms"] <= 35.0),
         ("reset RCE update <= 2x its FLOP-limit time", ours["median_ms"] / ours["flop_limit_ms"],
@@ -296,23 +360,26 @@ def main(argv=None) -> dict:
         ("forward update <= 3 ms (torch.compile)", compiled["median_ms"], compiled["median_ms"] <= 3.0),
         ("K = 20 costs < 4x K = 5 (batch 256)", by[(20, 256)] / by[(5, 256)], by[(20, 256)] < 4 * by[(5, 256)]),
     ]
-    report = {"machine": machine(), "matmul_precision": precision,
+    report = {"machine": machine(device), "matmul_precision": precision,
               "matmul_gflops": {p: r / 1e9 for p, r in rates.items()}, "updates": rows, "scaling": scaling,
+              "forward_vs_torchrl_ddpg_loss": stock_forward["median_ms"] / forward["median_ms"],
               "targets": [{"target": t, "measured": v, "met": ok} for t, v, ok in targets]}
 
     lines = [f"# Update speed ({report['machine']['date']})", "",
-             f"Machine: {report['machine']['cpu']}, {report['machine']['cores']} cores, {args.threads} torch threads; "
-             f"torch {torch.__version__}, torchrl {torchrl.__version__}, Python {platform.python_version()}.",
-             "Float32 matrix products (1024 x 1024, best of several runs): "
+             describe(report["machine"], args.threads),
+             f"Float32 matrix products ({'4096 x 4096' if not on_cpu else '1024 x 1024'}, best of several runs): "
              + "; ".join(f"{RATE_NAMES[p]}: {r / 1e9:.0f} GFLOP/s" for p, r in rates.items()) + ".",
-             f"The recipe's `speed.matmul_precision=auto` chose `{precision}` on this machine; each row's FLOP limit "
-             "uses the rate of the precision it ran with.", "",
+             (f"The recipe's `speed.matmul_precision=auto` chose `{precision}` on this machine; each row's FLOP limit "
+              "uses the rate of the precision it ran with." if on_cpu else
+              "Products in plain float32 (`speed.matmul_precision` is a CPU setting)."), "",
              "| update | products | median (ms) | min (ms) | GFLOP | FLOP-limit time (ms) | fraction of the limit |",
              "|---|---|---|---|---|---|---|"]
     for r in rows:
         lines.append(f"| {r['update']} | {r['precision']} | {r['median_ms']:.2f} | {r['min_ms']:.2f} | {r['flops'] / 1e9:.3f} | "
                      f"{r['flop_limit_ms']:.2f} | {100 * r['fraction_of_limit']:.0f}% |")
-    lines += ["", f"Reset RCE update ({precision} products), median ms (rows: K; columns: batch):", "",
+    lines += ["", f"The recipe's forward update (`DirectDDPGLoss`) against the same update through torchrl's "
+              f"`DDPGLoss`: {report['forward_vs_torchrl_ddpg_loss']:.2f}x faster (medians).",
+              "", f"Reset RCE update ({precision} products), median ms (rows: K; columns: batch):", "",
               "| K | 64 | 256 | 1024 |", "|---|---|---|---|"]
     for members in (1, 5, 10, 20):
         lines.append(f"| {members} | " + " | ".join(f"{by[(members, b)]:.1f}" for b in (64, 256, 1024)) + " |")

@@ -20,9 +20,9 @@ from torchrl.data import LazyTensorStorage, ReplayBuffer
 from torchrl.envs import TransformedEnv
 from torchrl.envs.utils import ExplorationType, set_exploration_type, step_mdp
 from torchrl.modules import OrnsteinUhlenbeckProcessModule, TanhModule
-from torchrl.objectives import DDPGLoss, SoftUpdate
+from torchrl.objectives import SoftUpdate
 
-from torchrl_reset import EnsembleValueOperator, NStepStateTransform, RCELoss, ResetTriggerTransform
+from torchrl_reset import DirectDDPGLoss, EnsembleValueOperator, NStepStateTransform, RCELoss, ResetTriggerTransform
 from torchrl_reset_envs import TASKS, make_env
 
 ALGOS = ("ours", "lnt", "lnt_sparse")
@@ -259,7 +259,7 @@ def make_forward_agent(cfg: DictConfig, obs_dim: int, action_spec) -> Agent:
     critic = EnsembleValueOperator(
         obs_dim, act_dim, num_members=1, hidden_sizes=tuple(cfg.hidden_sizes), prior_scale=0.0, out_keys=["state_action_value"]
     )
-    loss = DDPGLoss(actor, critic, delay_actor=True, delay_value=True)
+    loss = DirectDDPGLoss(actor, critic, delay_actor=True, delay_value=True)
     loss.make_value_estimator(gamma=cfg.gamma)
     optimizer = make_adam(cfg, [
         {"params": list(loss.actor_network_params.values(True, True)), "lr": cfg.forward.actor_lr},
@@ -287,7 +287,7 @@ def make_reset_agent(cfg: DictConfig, obs_dim: int, action_spec) -> Agent:
             obs_dim, act_dim, num_members=cfg.algo.num_members, hidden_sizes=tuple(cfg.hidden_sizes),
             prior_scale=cfg.algo.prior_scale, out_keys=["state_action_value"],
         )
-        loss = DDPGLoss(actor, model, delay_actor=True, delay_value=True)
+        loss = DirectDDPGLoss(actor, model, delay_actor=True, delay_value=True)
         loss.set_keys(reward="lnt_reward")
         loss.make_value_estimator(gamma=cfg.gamma)
         optimizer = make_adam(cfg, [

@@ -3,6 +3,7 @@
 Implements Kim et al., "Automating Reinforcement Learning with Example-based Resets" (RA-L 2022).
 """
 from .collector import DualCollector, find_trigger_transforms
+from .ddpg import DirectDDPGLoss
 from .ensemble import EnsembleValueOperator, reduce_members, success_classifier, success_probability
 from .example_buffer import InitialStateBuffer
 from .nstep import NStepStateTransform
@@ -12,6 +13,7 @@ from .trigger import ResetTriggerTransform
 __version__ = "0.1.0"
 
 __all__ = [
+    "DirectDDPGLoss",
     "DualCollector",
     "EnsembleValueOperator",
     "InitialStateBuffer",
