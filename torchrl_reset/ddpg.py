@@ -24,10 +24,10 @@ class DirectDDPGLoss(DDPGLoss):
     Only the per-call work differs. torchrl's ``forward`` swaps parameter sets into the networks
     with ``TensorDict.to_module`` four times per call, copies the input tensordict for each
     network and goes through the value estimator's generic ``step_mdp``; on a batch-64 update of
-    400-300 networks that bookkeeping costs more than the arithmetic (about 0.6 of 1.6 ms per
-    loss call on 2 CPU cores). Here the networks run on small tensordicts of the entries they
-    read, their own live parameters need no swap, and the target and detached parameter sets go
-    in through :func:`torch.func.functional_call`.
+    400-300 networks that bookkeeping is a large share of the time (``benchmarks/bench_updates.py``
+    times the recipe's forward update both ways). Here the networks run on small tensordicts of
+    the entries they read, their own live parameters need no swap, and the target and detached
+    parameter sets go in through :func:`torch.func.functional_call`.
 
     The direct path covers the recipe's configuration: the TD(0) value estimator without reward
     standardisation or ``steps_to_next_obs``, and no priority weights. Anything else (another
