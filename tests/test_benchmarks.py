@@ -1,0 +1,99 @@
+"""The benchmark scripts: their FLOP counts against hand counts, and each documented command end to end (tiny runs)."""
+import json
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "benchmarks"))
+sys.path.insert(0, str(ROOT / "recipes"))
+
+import bench_loop  # noqa: E402
+import bench_updates  # noqa: E402
+
+# peg-insertion: 14 observations, 7 actions; the paper's 400-300 networks
+OBS, ACT, H0, H1 = 14, 7, 400, 300
+ACTOR = 2 * (OBS * H0 + H0 * H1 + H1 * ACT)  # one row through the actor, FLOPs
+TRUNK = 2 * (OBS * H0 + H0 * H1)  # one row through a critic member's state part
+HEAD = 2 * ACT * H1  # the action layer (the one-wide logit layer is a dot product: not a matrix product)
+
+
+def test_flop_counter_counts_in_place_products():
+    a, b, c = torch.randn(2, 3, 5), torch.randn(2, 3, 4), torch.randn(2, 4, 5)
+    with bench_updates.CountFlops() as counter:
+        a.baddbmm_(b, c)
+        torch.randn(6, 5).addmm_(torch.randn(6, 2), torch.randn(2, 5))
+    assert counter.total == 2 * (2 * 3 * 4 * 5) + 2 * 6 * 2 * 5
+
+
+@pytest.mark.parametrize("stock_loss", [False, True])
+def test_forward_update_flops_match_a_hand_count(stock_loss):
+    update = bench_updates.make_update("forward", stock_loss=stock_loss)
+    batch = 64
+    # forward: critic on the replay pairs, target actor and target critic on s', actor and held critic on s
+    forward = 2 * ACTOR + 3 * (TRUNK + HEAD)
+    # backward of the value loss: the critic's weight gradients and the gradient into its first hidden layer
+    value = HEAD + 2 * H0 * H1 * 2 + 2 * OBS * H0
+    # backward of the actor loss: into the action through the held critic's action layer, then the actor
+    # (weight gradients everywhere, input gradients except into the observation)
+    actor = HEAD + (2 * H1 * ACT * 2 + 2 * H0 * H1 * 2 + 2 * OBS * H0)
+    assert bench_updates.count_flops(update) == batch * (forward + value + actor)  # 145,676,800
+
+
+def test_rce_update_flops_match_a_hand_count():
+    torch.manual_seed(0)
+    update = bench_updates.make_update("ours")  # K = 5, 256 replay rows + 256 examples, n = 10, priors
+    k, b = 5, 256
+    labels = 3 * b * ACTOR + 2 * k * 2 * b * (TRUNK + HEAD)  # actor on s', s_n, s*; 2K stacked members on s', s_n
+    paired = (b * ACTOR  # actor on s (with gradient)
+              + k * 2 * b * TRUNK  # trained state part on examples and replay rows
+              + k * b * HEAD + k * 2 * b * HEAD  # trained heads: the policy's actions, then all rows
+              + k * b * TRUNK  # the priors' state part of the replay rows (the examples' is kept)
+              + 3 * k * b * HEAD)  # prior heads: policy, examples, replay rows
+    classifier = k * 2 * b * (HEAD + 2 * H0 * H1 * 2 + 2 * OBS * H0)
+    actor = 2 * k * b * HEAD + b * (2 * H1 * ACT * 2 + 2 * H0 * H1 * 2 + 2 * OBS * H0)
+    kept = labels + paired + classifier + actor  # 3,972,915,200
+    # the first update computes the examples' prior state part (for the whole example batch) and keeps
+    # it; once every one of the 100 examples has been drawn, nothing is recomputed
+    assert bench_updates.count_flops(update) == kept + k * b * TRUNK
+    for _ in range(5):
+        update()
+    assert bench_updates.count_flops(update) == kept
+
+
+def test_update_benchmark_command_writes_its_tables(tmp_path):
+    report = bench_updates.main(["--repeats", "2", "--rounds", "1", "--out", str(tmp_path)])
+    written = sorted(p.suffix for p in tmp_path.iterdir())
+    assert written == [".json", ".md"]
+    saved = json.loads(next(tmp_path.glob("*.json")).read_text())
+    assert saved["targets"] == report["targets"] and len(saved["scaling"]) == 12
+    for row in saved["updates"]:
+        rate = saved["matmul_gflops"][row["precision"]] * 1e9
+        assert row["flop_limit_ms"] == pytest.approx(1000 * row["flops"] / rate)
+        assert row["fraction_of_limit"] == pytest.approx(row["flop_limit_ms"] / row["median_ms"])
+        assert 0 < row["min_ms"] <= row["median_ms"]
+    assert "forward DDPG update" in next(tmp_path.glob("*.md")).read_text()
+
+
+def test_loop_benchmark_command_gives_ratios_and_the_paper_run_projection(tmp_path):
+    # two forward episodes (H_f = 100) around a reset episode: both agents update and are timed
+    report = bench_loop.main(["--steps", "330", "--heat-up", "10", "--rounds", "1", "--out", str(tmp_path)])
+    assert sorted(p.suffix for p in tmp_path.iterdir()) == [".json", ".md"]
+    loops = report["loops"]
+    assert {r["steps"] for r in loops.values()} == {330}
+    share = report["common_forward_share"]
+    rates = {name: 1 / (share * r["step_seconds"]["forward"] + (1 - share) * r["step_seconds"]["reset"])
+             for name, r in loops.items()}
+    for name, ratio in report["ratios"].items():
+        assert ratio == pytest.approx(rates["ours"] / rates[name])
+    assert report["projected_paper_run_hours"] == pytest.approx(1_500_000 / rates["ours"] / 3600)
+    assert "paper run" in next(tmp_path.glob("*.md")).read_text()
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="checks the message of a machine without CUDA")
+@pytest.mark.parametrize("script", [bench_updates, bench_loop])
+def test_a_cuda_run_without_cuda_stops_with_a_clear_message(script, tmp_path):
+    with pytest.raises(SystemExit, match="no CUDA device"):
+        script.main(["--device", "cuda", "--out", str(tmp_path)])
