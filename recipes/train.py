@@ -79,7 +79,10 @@ def train(cfg: DictConfig) -> dict:
     torch.set_num_threads(int(cfg.threads))
     if cfg.speed.retain_memory:
         retain_freed_memory()
-    matmul_precision = choose_matmul_precision(OmegaConf.select(cfg, "speed.matmul_precision", default="ieee"))
+    # a setting of CPU products: with the networks on another device it changes nothing
+    on_cpu = torch.device(cfg.device).type == "cpu"
+    precision_setting = OmegaConf.select(cfg, "speed.matmul_precision", default="ieee") if on_cpu else "ieee"
+    matmul_precision = choose_matmul_precision(precision_setting)
     torch.manual_seed(cfg.seed)
     np.random.seed(cfg.seed)
     random.seed(cfg.seed)
