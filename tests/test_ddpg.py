@@ -141,6 +141,20 @@ def test_other_estimators_and_priority_weights_go_through_torchrl_forward():
     torch.testing.assert_close(direct(weighted.clone())["loss_value"], stock(weighted.clone())["loss_value"])
 
 
+def test_networks_not_holding_the_trained_parameters_go_through_torchrl_forward():
+    torch.manual_seed(0)
+    actor, critic = recipe_networks(1, 0.0)
+    stock = DDPGLoss(copy.deepcopy(actor), copy.deepcopy(critic), delay_actor=True, delay_value=True)
+    direct = DirectDDPGLoss(copy.deepcopy(actor), copy.deepcopy(critic), delay_actor=True, delay_value=True)
+    data = random_batch(8, 1, torch.Generator().manual_seed(3))
+    assert direct._direct(data)
+    # the critic now holds other tensors than the loss's trained parameters: torchrl swaps those in
+    direct.value_network.weight_0 = torch.nn.Parameter(torch.zeros_like(direct.value_network.weight_0))
+    assert not direct._direct(data)
+    for key in ("loss_value", "loss_actor"):
+        torch.testing.assert_close(direct(data.clone())[key], stock(data.clone())[key])
+
+
 def test_mismatched_reward_columns_are_an_error():
     actor, critic = recipe_networks(3, 0.0)
     loss = DirectDDPGLoss(actor, critic, delay_actor=True, delay_value=True)

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import torch
 from tensordict import TensorDict, TensorDictBase
+from torch import nn
 from torch.func import functional_call
 from torchrl.objectives import DDPGLoss
 from torchrl.objectives.utils import distance_loss
@@ -14,6 +15,12 @@ __all__ = ["DirectDDPGLoss"]
 def _flat(params: TensorDictBase) -> dict[str, torch.Tensor]:
     """``{"module.0.weight": tensor, ...}``: a loss module's parameter tensordict in module naming."""
     return {".".join(key) if isinstance(key, tuple) else key: value for key, value in params.items(True, True)}
+
+
+def _holds(module: nn.Module, params: TensorDictBase) -> bool:
+    """Whether ``module``'s own parameters are those in ``params`` (then it runs on them unswapped)."""
+    own = {id(p) for p in module.parameters()}
+    return all(id(t) in own for t in params.values(True, True) if isinstance(t, nn.Parameter))
 
 
 class DirectDDPGLoss(DDPGLoss):
@@ -30,8 +37,9 @@ class DirectDDPGLoss(DDPGLoss):
     parameter sets go in through :func:`torch.func.functional_call`.
 
     The direct path covers the recipe's configuration: the TD(0) value estimator without reward
-    standardisation or ``steps_to_next_obs``, and no priority weights. Anything else (another
-    estimator, prioritized replay weights in the batch) runs torchrl's own ``forward``. Outputs are
+    standardisation or ``steps_to_next_obs``, no priority weights, and networks that hold the
+    loss's trained parameters themselves (as torchrl's conversion leaves them). Anything else
+    (another estimator, prioritized replay weights in the batch) runs torchrl's own ``forward``. Outputs are
     torchrl's: ``loss_actor``, ``loss_value`` and the metadata entries (``td_error``,
     ``pred_value``, ``target_value`` and their maxima), and the priority entry written into the
     input.
@@ -65,6 +73,8 @@ class DirectDDPGLoss(DDPGLoss):
             and not estimator.average_rewards
             and self._maybe_get_priority_weight(tensordict) is None
             and estimator.tensor_keys.steps_to_next_obs not in tensordict.keys(True)
+            and _holds(self.actor_network, self.actor_network_params)
+            and _holds(self.value_network, self.value_network_params)
         )
 
     def forward(self, tensordict: TensorDictBase) -> TensorDict:
