@@ -121,11 +121,16 @@ def test_training_matches_torchrl_ddpg_loss_step_for_step(members, prior_scale):
         torch.testing.assert_close(direct_state[key], stock_state[key], rtol=1e-5, atol=1e-6)
 
 
-def test_other_estimators_and_priority_weights_go_through_torchrl_forward():
+def stock_and_direct() -> tuple[DDPGLoss, DirectDDPGLoss]:
+    """Both losses on copies of the same small networks."""
     torch.manual_seed(0)
     actor, critic = recipe_networks(1, 0.0)
-    stock = DDPGLoss(copy.deepcopy(actor), copy.deepcopy(critic), delay_actor=True, delay_value=True)
-    direct = DirectDDPGLoss(copy.deepcopy(actor), copy.deepcopy(critic), delay_actor=True, delay_value=True)
+    return tuple(cls(copy.deepcopy(actor), copy.deepcopy(critic), delay_actor=True, delay_value=True)
+                 for cls in (DDPGLoss, DirectDDPGLoss))
+
+
+def test_other_estimators_and_priority_weights_go_through_torchrl_forward():
+    stock, direct = stock_and_direct()
     data = random_batch(8, 1, torch.Generator().manual_seed(2))
     for loss in (stock, direct):
         loss.make_value_estimator(ValueEstimators.TD0, gamma=0.9)
@@ -142,10 +147,7 @@ def test_other_estimators_and_priority_weights_go_through_torchrl_forward():
 
 
 def test_networks_not_holding_the_trained_parameters_go_through_torchrl_forward():
-    torch.manual_seed(0)
-    actor, critic = recipe_networks(1, 0.0)
-    stock = DDPGLoss(copy.deepcopy(actor), copy.deepcopy(critic), delay_actor=True, delay_value=True)
-    direct = DirectDDPGLoss(copy.deepcopy(actor), copy.deepcopy(critic), delay_actor=True, delay_value=True)
+    stock, direct = stock_and_direct()
     data = random_batch(8, 1, torch.Generator().manual_seed(3))
     assert direct._direct(data)
     # the critic now holds other tensors than the loss's trained parameters: torchrl swaps those in
