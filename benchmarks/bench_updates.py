@@ -274,7 +274,10 @@ def describe(info: dict, threads: int) -> str:
 
 def check_device(device: str) -> str:
     """``device`` if this machine has it, else a clear exit."""
-    kind = torch.device(device).type
+    try:
+        kind = torch.device(device).type
+    except RuntimeError as err:
+        raise SystemExit(f"--device {device}: not a device name ({err}).") from None
     if kind == "cuda" and not torch.cuda.is_available():
         raise SystemExit(f"--device {device}: this machine has no CUDA device (torch {torch.__version__}, "
                          f"CUDA build: {torch.version.cuda or 'no'}).")
@@ -309,7 +312,7 @@ def main(argv=None) -> dict:
     torch.set_num_threads(args.threads)
     torch.manual_seed(0)
     train_utils.retain_freed_memory()  # as the recipe does (speed.retain_memory)
-    repeats = args.repeats or (20 if args.quick else 60)
+    repeats = args.repeats if args.repeats is not None else (20 if args.quick else 60)
     if repeats < 1 or args.rounds < 1:
         raise SystemExit("--repeats and --rounds must be at least 1.")
 

@@ -97,3 +97,11 @@ def test_loop_benchmark_command_gives_ratios_and_the_paper_run_projection(tmp_pa
 def test_a_cuda_run_without_cuda_stops_with_a_clear_message(script, tmp_path):
     with pytest.raises(SystemExit, match="no CUDA device"):
         script.main(["--device", "cuda", "--out", str(tmp_path)])
+
+
+@pytest.mark.parametrize("argv,message", [(["--device", "gpu0"], "not a device name"),
+                                          (["--device", "meta"], "only cpu and cuda"),
+                                          (["--repeats", "0"], "at least 1")])
+def test_bad_update_benchmark_arguments_stop_with_a_clear_message(argv, message, tmp_path):
+    with pytest.raises(SystemExit, match=message):
+        bench_updates.main([*argv, "--out", str(tmp_path)])
