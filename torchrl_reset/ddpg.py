@@ -20,7 +20,7 @@ def _flat(params: TensorDictBase) -> dict[str, torch.Tensor]:
 def _holds(module: nn.Module, params: TensorDictBase) -> bool:
     """Whether ``module``'s own parameters are those in ``params`` (then it runs on them unswapped)."""
     own = {id(p) for p in module.parameters()}
-    return all(id(t) in own for t in params.values(True, True) if isinstance(t, nn.Parameter))
+    return all(id(p) in own for p in params.parameters())  # TensorDictParams is a module: its parameters
 
 
 class DirectDDPGLoss(DDPGLoss):
