@@ -43,12 +43,14 @@ from hydra import compose, initialize_config_dir
 from tensordict import TensorDict
 from torch.utils._python_dispatch import TorchDispatchMode
 from torch.utils.flop_counter import flop_registry
+from torchrl.objectives import DDPGLoss
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "recipes"))
 
 import torchrl  # noqa: E402
 import train_utils  # noqa: E402
+from torchrl_reset import DirectDDPGLoss  # noqa: E402
 
 OBS, ACT = 14, 7  # peg-insertion
 
@@ -116,18 +118,8 @@ def make_update(kind: str, *, members: int | None = None, batch: int | None = No
     cfg = paper_config("ours" if kind == "forward" else kind, **overrides)
     forward_rb, reset_rb, examples = filled_buffers(cfg)
     if kind == "forward":
-        agent = train_utils.make_forward_agent(cfg, OBS, action_spec())
-        if stock_loss:
-            from torchrl.objectives import DDPGLoss
-
-            old = agent.loss
-            agent.loss = DDPGLoss(old.actor_network, old.value_network, delay_actor=True, delay_value=True)
-            agent.loss.make_value_estimator(gamma=cfg.gamma)
-            agent.optimizer = train_utils.make_adam(cfg, [
-                {"params": list(agent.loss.actor_network_params.values(True, True)), "lr": cfg.forward.actor_lr},
-                {"params": list(agent.loss.value_network_params.values(True, True)), "lr": cfg.forward.critic_lr},
-            ])
-            agent.targets = train_utils.FusedSoftUpdate(agent.loss, tau=cfg.tau)
+        loss_class = DDPGLoss if stock_loss else DirectDDPGLoss
+        agent = train_utils.make_forward_agent(cfg, OBS, action_spec(), loss_class=loss_class)
         names = ("loss_actor", "loss_value")
     else:
         agent = train_utils.make_reset_agent(cfg, OBS, action_spec())
@@ -220,10 +212,10 @@ def summary(times: list[float]) -> dict:
     return {"median_ms": 1000 * statistics.median(times), "min_ms": 1000 * min(times)}
 
 
-def time_update(update, repeats: int, warmup: int = 5, with_flops: bool = True, device="cpu") -> dict:
+def time_update(update, repeats: int, warmup: int = 5, device="cpu") -> dict:
     """Median and minimum wall time of ``update`` over ``repeats`` calls after ``warmup`` calls, and its FLOPs."""
     result = summary(run_timed(update, repeats, warmup=warmup, warmup_seconds=0.0, device=device))
-    result["flops"] = count_flops(update) if with_flops else None
+    result["flops"] = count_flops(update)
     return result
 
 

@@ -252,14 +252,17 @@ class Agent:
     model: Any  # the critic or classifier ensemble
 
 
-def make_forward_agent(cfg: DictConfig, obs_dim: int, action_spec) -> Agent:
-    """DDPG with the paper's critic layout (action joined after the first hidden layer)."""
+def make_forward_agent(cfg: DictConfig, obs_dim: int, action_spec, loss_class: type = DirectDDPGLoss) -> Agent:
+    """DDPG with the paper's critic layout (action joined after the first hidden layer).
+
+    ``loss_class``: the recipe's :class:`~torchrl_reset.DirectDDPGLoss`, or torchrl's ``DDPGLoss``
+    (the same losses; the benchmarks compare the two)."""
     act_dim = action_spec.shape[-1]
     actor = make_actor(obs_dim, action_spec, cfg.hidden_sizes)
     critic = EnsembleValueOperator(
         obs_dim, act_dim, num_members=1, hidden_sizes=tuple(cfg.hidden_sizes), prior_scale=0.0, out_keys=["state_action_value"]
     )
-    loss = DirectDDPGLoss(actor, critic, delay_actor=True, delay_value=True)
+    loss = loss_class(actor, critic, delay_actor=True, delay_value=True)
     loss.make_value_estimator(gamma=cfg.gamma)
     optimizer = make_adam(cfg, [
         {"params": list(loss.actor_network_params.values(True, True)), "lr": cfg.forward.actor_lr},
