@@ -7,7 +7,9 @@
 Tasks: cliff_cheetah, cliff_walker, peg_insertion_insert, peg_insertion_remove, ball_in_cup_catch,
 ball_in_cup_throw. Everything lands in ``run_dir`` (default ``runs/<task>/<algo>/seed<seed>``):
 ``progress.csv`` (the training metrics every ``log_every`` steps), ``eval.csv`` (one row per
-evaluation), ``triggers.csv`` (the state before each triggered reset), ``summary.json`` (the paper's
+evaluation), ``triggers.csv`` (the state before each triggered reset), ``diagnostics.csv`` (the
+trigger's scores and the reset classifier on examples, replay and forward states, every
+``log_every`` steps), ``resets.csv`` (each reset episode's outcome and its distance from the start), ``summary.json`` (the paper's
 Table 1 metrics), ``checkpoints/`` and torchrl's CSV (and optionally wandb) logs. ``report.py`` turns
 run folders into the paper's table and figures.
 """
@@ -53,6 +55,14 @@ from train_utils import (  # noqa: E402
     with_exploration,
 )
 
+from diagnostics import (  # noqa: E402
+    DIAGNOSTIC_FIELDS,
+    RESET_FIELDS,
+    ResetDistances,
+    TriggerScores,
+    probe_classifier,
+)
+
 from torchrl_reset import DualCollector  # noqa: E402
 
 PROGRESS_FIELDS = [
@@ -94,7 +104,7 @@ def train(cfg: DictConfig) -> dict:
     reset = make_reset_agent(cfg, obs_dim, action_spec)
     for agent in (forward, reset):
         agent.loss.to(cfg.device)
-    env, _ = make_task_env(cfg, reset)
+    env, trigger = make_task_env(cfg, reset)
     eval_env, eval_trigger = make_task_env(cfg, reset, for_eval=True)
     collector = DualCollector(
         env,
@@ -113,6 +123,10 @@ def train(cfg: DictConfig) -> dict:
     progress = CsvTable(run_dir / "progress.csv", PROGRESS_FIELDS)
     evals = CsvTable(run_dir / "eval.csv", EVAL_FIELDS)
     triggers = CsvTable(run_dir / "triggers.csv", TRIGGER_FIELDS)
+    diagnostics = CsvTable(run_dir / "diagnostics.csv", DIAGNOSTIC_FIELDS)
+    resets = CsvTable(run_dir / "resets.csv", RESET_FIELDS)
+    trigger_scores = TriggerScores(trigger.score_key, trigger.threshold)
+    distances = ResetDistances(collector.example_buffer)
     history = {"eval_returns": [], "last_losses": {}, "elapsed": 0.0}
 
     def write_checkpoint(folder: Path) -> None:
@@ -151,7 +165,7 @@ def train(cfg: DictConfig) -> dict:
         torch.set_rng_state(state["rng"]["torch"])
         np.random.set_state(state["rng"]["numpy"])
         random.setstate(state["rng"]["python"])
-        for table in (progress, evals, triggers):
+        for table in (progress, evals, triggers, diagnostics, resets):
             table.truncate_after(collector.frames)
         log.info("resumed from %s at step %d", folder, collector.frames)
     else:
@@ -224,6 +238,7 @@ def train(cfg: DictConfig) -> dict:
             timed = min(collector.counters["forward_steps"], collector.counters["reset_steps"]) > heat_up + warm_up_updates
             if phase == "forward":
                 forward_rb.extend(batch.select(*forward_keys, strict=False))
+                trigger_scores.add(batch)
                 if updating and fits("forward"):
                     out = update(forward, forward_rb.sample(), ("loss_actor", "loss_value"))
                     history["last_losses"].update(loss_forward_actor=out["loss_actor"], loss_forward_critic=out["loss_value"])
@@ -246,6 +261,8 @@ def train(cfg: DictConfig) -> dict:
             last = now
             bar.update(batch.numel())
             for event in collector.pop_events():
+                if event["phase"] == "reset":
+                    resets.append(distances.row(event))
                 if event["outcome"] == "triggered":
                     obs = event["state"]["observation"].flatten().tolist()
                     triggers.append({"frames": event["frame"], "steps": event["steps"], "value": obs[curriculum_index],
@@ -259,6 +276,11 @@ def train(cfg: DictConfig) -> dict:
                 history["elapsed"] = time.perf_counter() - start
                 row = log_row(history["elapsed"])
                 progress.append(row)
+                with torch.random.fork_rng(devices=[]):  # the probe's samples leave training's random stream as it was
+                    probe = probe_classifier(cfg.algo.name, reset.model, reset.actor, collector.example_buffer,
+                                             forward_rb, reset_rb, trigger.threshold)
+                fallbacks = getattr(reset_rb.sampler, "fallbacks", "")
+                diagnostics.append({"frames": frames, **trigger_scores.row(), **probe, "sampler_fallbacks": fallbacks})
                 for logger in loggers:
                     logger.log_metrics({k: v for k, v in row.items() if k != "frames" and not _isnan(v)}, step=frames)
                 bar.set_postfix(sps=f"{row['steps_per_second']:.0f}", manual=row["manual_resets"],

@@ -22,7 +22,14 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type, step_mdp
 from torchrl.modules import OrnsteinUhlenbeckProcessModule, TanhModule
 from torchrl.objectives import SoftUpdate
 
-from torchrl_reset import DirectDDPGLoss, EnsembleValueOperator, NStepStateTransform, RCELoss, ResetTriggerTransform
+from torchrl_reset import (
+    DirectDDPGLoss,
+    EnsembleValueOperator,
+    EpisodeWindowSampler,
+    NStepStateTransform,
+    RCELoss,
+    ResetTriggerTransform,
+)
 from torchrl_reset_envs import TASKS, make_env
 
 ALGOS = ("ours", "lnt", "lnt_sparse")
@@ -65,6 +72,9 @@ def validate(cfg: DictConfig) -> None:
     precision = OmegaConf.select(cfg, "speed.matmul_precision", default="ieee")
     if precision not in MATMUL_PRECISIONS:
         problems.append(f"speed.matmul_precision must be one of {', '.join(MATMUL_PRECISIONS)}; got {precision!r}")
+    sampling = OmegaConf.select(cfg, "algo.nstep_sampling", default="episode")
+    if cfg.algo.name == "ours" and sampling not in ("episode", "transition"):
+        problems.append(f"algo.nstep_sampling must be episode or transition, got {sampling!r}")
     compile_agents = OmegaConf.select(cfg, "speed.compile", default=[])
     if not OmegaConf.is_list(compile_agents) or not set(compile_agents) <= {"forward", "reset"}:
         problems.append(f"speed.compile must be a list of agents among forward, reset; got {compile_agents!r}")
@@ -280,7 +290,8 @@ def make_reset_agent(cfg: DictConfig, obs_dim: int, action_spec) -> Agent:
             obs_dim, act_dim, num_members=cfg.algo.num_members, hidden_sizes=tuple(cfg.hidden_sizes),
             prior_scale=cfg.algo.prior_scale,
         )
-        loss = RCELoss(actor, model, gamma=cfg.gamma, n_steps=cfg.algo.n_steps)
+        loss = RCELoss(actor, model, gamma=cfg.gamma, n_steps=cfg.algo.n_steps,
+                       clip_target_values=bool(OmegaConf.select(cfg, "algo.clip_target_values", default=False)))
         optimizer = make_adam(cfg, [
             {"params": list(actor.parameters()), "lr": cfg.reset.actor_lr},
             {"params": list(model.parameters()), "lr": cfg.reset.critic_lr},
@@ -343,8 +354,12 @@ def make_task_env(cfg: DictConfig, reset_agent: Agent, *, for_eval: bool = False
 
 def make_buffers(cfg: DictConfig) -> tuple[ReplayBuffer, ReplayBuffer]:
     forward_rb = ReplayBuffer(storage=LazyTensorStorage(cfg.forward.buffer_size), batch_size=cfg.forward.batch_size)
-    transform = NStepStateTransform(cfg.algo.n_steps) if cfg.algo.name == "ours" else None
-    reset_rb = ReplayBuffer(storage=LazyTensorStorage(cfg.reset.buffer_size), batch_size=cfg.reset.batch_size, transform=transform)
+    ours = cfg.algo.name == "ours"
+    transform = NStepStateTransform(cfg.algo.n_steps) if ours else None
+    episodes = ours and OmegaConf.select(cfg, "algo.nstep_sampling", default="episode") == "episode"
+    sampler = EpisodeWindowSampler(cfg.algo.n_steps) if episodes else None
+    reset_rb = ReplayBuffer(storage=LazyTensorStorage(cfg.reset.buffer_size), batch_size=cfg.reset.batch_size,
+                            transform=transform, sampler=sampler)
     return forward_rb, reset_rb
 
 

@@ -8,11 +8,11 @@ from torch import nn
 from torchrl_reset import EnsembleValueOperator
 
 
-def linear_logit_ensemble(slopes, biases=None, action_dim: int = 1) -> EnsembleValueOperator:
+def linear_logit_ensemble(slopes, biases=None, action_dim: int = 1, action_slopes=None) -> EnsembleValueOperator:
     """An ensemble with 1-d observations whose member i returns ``-slopes[i] * x + biases[i]`` for x >= 0.
 
-    Hidden sizes (1, 1): h0 = relu(x), h1 = relu(h0), logit = -slope * h1 + bias; the action is ignored.
-    No prior, so the logits are exactly these numbers.
+    Hidden sizes (1, 1): h0 = relu(x), h1 = relu(h0 + action_slopes[i] * a), logit = -slope * h1 + bias;
+    the action is ignored unless ``action_slopes`` is given. No prior, so the logits are exactly these numbers.
     """
     k = len(slopes)
     biases = [0.0] * k if biases is None else biases
@@ -23,6 +23,8 @@ def linear_logit_ensemble(slopes, biases=None, action_dim: int = 1) -> EnsembleV
         ens.weight_1.fill_(1.0)
         ens.bias_1.zero_()
         ens.action_weight.zero_()
+        if action_slopes is not None:
+            ens.action_weight.copy_(torch.tensor(action_slopes, dtype=torch.float32).view(k, 1, 1).expand_as(ens.action_weight))
         ens.weight_2.copy_(-torch.tensor(slopes, dtype=torch.float32).view(k, 1, 1))
         ens.bias_2.copy_(torch.tensor(biases, dtype=torch.float32).view(k, 1))
     return ens

@@ -110,6 +110,25 @@ def test_triggered_steps_are_not_executed_nor_yielded_and_are_counted():
     assert torch.isnan(reset["next", "success_probability"]).all()
 
 
+@pytest.mark.parametrize("trigger_cell, expected", [(3, "triggered"), (4, "requested")])
+def test_at_the_horizon_the_trigger_is_scored_before_the_reset_is_requested(trigger_cell, expected):
+    # H_f = 3 steps from cell 0 end in cell 3. Algorithm 1 then draws the next action and scores it
+    # first: a trigger from cell 3 makes the episode a triggered one, else the reset is requested.
+    env = TransformedEnv(CountingChain(num_states=10), ResetTriggerTransform(trigger_at(trigger_cell), 0.1))
+    collector = DualCollector(env, RIGHT, LEFT, max_forward_steps=3, min_reset_steps=1, total_frames=12)
+    steps = torch.cat(collect(collector))
+    assert steps["collector", "phase"].tolist() == [0, 0, 0, 1, 1, 1] * 2  # the scored action is never executed
+    c = collector.counters
+    other = "requested" if expected == "triggered" else "triggered"
+    assert c[f"{expected}_resets"] == 2 and c[f"{other}_resets"] == 0 and c["forward_episodes"] == 2
+    events = [e for e in collector.pop_events() if e["phase"] == "forward"]
+    assert [e["outcome"] for e in events] == [expected] * 2
+    assert all(cell(e["state"]["observation"]) == 3 and e["steps"] == 3 for e in events)
+    # the H_f-th step closes its episode either way
+    forward = steps[steps["collector", "phase"] == 0]
+    assert forward["next", "truncated"].squeeze(-1).tolist() == [False, False, True] * 2
+
+
 def test_counters_and_example_buffer_match_the_yielded_transitions():
     env = TransformedEnv(CountingChain(num_states=12, ditch=9), ResetTriggerTransform(trigger_at(5), 0.1))
     policy = TensorDictModule(

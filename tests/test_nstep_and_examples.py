@@ -114,3 +114,80 @@ def test_example_buffer_stores_states_samples_them_and_round_trips():
         buffer.add(TensorDict(state=torch.zeros(2)))
     with pytest.raises(ValueError, match="max_size"):
         InitialStateBuffer(max_size=0)
+
+
+# ---------------------------------------------------------------------------------------------- episode windows
+def _episodes(lengths, first_id=0, t0=0):
+    """Consecutive episodes of the given lengths: observation t (time), next observation t + 1."""
+    traj = torch.cat([torch.full((n,), first_id + i) for i, n in enumerate(lengths)])
+    t = torch.arange(t0, t0 + len(traj), dtype=torch.float32).unsqueeze(-1)
+    done = torch.zeros(len(traj), 1, dtype=torch.bool)
+    done[torch.tensor(lengths).cumsum(0) - 1] = True
+    return TensorDict({"observation": t, ("next", "observation"): t + 1, ("next", "done"): done,
+                       ("collector", "traj_ids"): traj}, batch_size=[len(traj)])
+
+
+def test_episode_window_sampler_picks_episodes_uniformly_then_a_whole_window_inside():
+    from torchrl_reset import EpisodeWindowSampler
+
+    torch.manual_seed(0)
+    n = 10
+    # episodes of 12, 30 and 7 transitions: 3 and 21 admissible starts; the 7-step one is never drawn
+    rb = ReplayBuffer(storage=LazyTensorStorage(100), sampler=EpisodeWindowSampler(n), batch_size=20000,
+                      transform=NStepStateTransform(n))
+    rb.extend(_episodes([12, 30, 7]))
+    sample = rb.sample()
+    t = sample["observation"].squeeze(-1).long()
+    # the window is whole: s_{t+n} is exactly n steps later
+    torch.testing.assert_close(sample["nstep", "observation"].squeeze(-1), (t + n).float())
+    assert set(t.tolist()) == set(range(0, 3)) | set(range(12, 33))
+    # episodes first: each of the two admissible episodes gets half the rows, whatever its length
+    share_first = (t < 12).float().mean().item()
+    assert share_first == pytest.approx(0.5, abs=0.015)
+    # within an episode the start is uniform: 1/3 of the first episode's rows each
+    counts = torch.bincount(t[t < 3], minlength=3).float() / (t < 3).sum()
+    torch.testing.assert_close(counts, torch.full((3,), 1 / 3), atol=0.02, rtol=0)
+
+
+def test_episode_window_sampler_falls_back_to_uniform_rows_and_follows_overwrites():
+    from torchrl_reset import EpisodeWindowSampler
+
+    torch.manual_seed(1)
+    sampler = EpisodeWindowSampler(5)
+    rb = ReplayBuffer(storage=LazyTensorStorage(10), sampler=sampler, batch_size=500)
+    rb.extend(_episodes([3, 4]))  # no episode has 5 transitions yet
+    assert set(rb.sample()["observation"].squeeze(-1).long().tolist()) == set(range(7))
+    assert sampler.fallbacks == 1
+    # 6 more rows overwrite 3 of the 10 slots: the first episode is gone, the second keeps t = 3..6,
+    # and the new 6-row episode (t = 7..12) wraps around the storage's end
+    rb.extend(_episodes([6], first_id=2, t0=7))
+    starts = set(rb.sample()["observation"].squeeze(-1).long().tolist())
+    assert starts == {7, 8} and sampler.fallbacks == 1
+    # one at a time, as the recipe writes: the same episodes
+    again = EpisodeWindowSampler(5)
+    rb2 = ReplayBuffer(storage=LazyTensorStorage(10), sampler=again, batch_size=500)
+    for row in torch.cat([_episodes([3, 4]), _episodes([6], first_id=2, t0=7)]).split(1):
+        rb2.extend(row)
+    assert set(rb2.sample()["observation"].squeeze(-1).long().tolist()) == {7, 8}
+    for key in ("traj", "start", "length", "rows"):
+        assert again.state_dict()[key] == sampler.state_dict()[key]
+    # slots 3-6 (t = 3..6) and 7, 8, 9, 0, 1, 2 (t = 7..12)
+    assert sampler.state_dict()["start"] == [3, 7] and sampler.state_dict()["length"] == [4, 6]
+
+
+def test_episode_window_sampler_survives_dumps_and_loads(tmp_path):
+    from torchrl_reset import EpisodeWindowSampler
+
+    rb = ReplayBuffer(storage=LazyTensorStorage(50), sampler=EpisodeWindowSampler(4), batch_size=8)
+    rb.extend(_episodes([5, 9, 2]))
+    rb.sample()
+    rb.extend(_episodes([6], first_id=3, t0=16))
+    rb.dumps(tmp_path / "rb")
+    fresh = ReplayBuffer(storage=LazyTensorStorage(50), sampler=EpisodeWindowSampler(4), batch_size=8)
+    fresh.loads(tmp_path / "rb")
+    torch.manual_seed(3)
+    a = rb.sample()["observation"]
+    torch.manual_seed(3)
+    b = fresh.sample()["observation"]
+    torch.testing.assert_close(a, b)
+    assert set(a.squeeze(-1).long().tolist()) <= {0, 1, 5, 6, 7, 8, 9, 10, 16, 17, 18}

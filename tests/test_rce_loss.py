@@ -86,14 +86,59 @@ def test_nstep_label_mixes_one_step_and_n_step_terms_then_takes_member_minimum()
     assert weight.item() == pytest.approx(1 + gamma * c_y / (1 - c_y), rel=1e-6)
 
 
-def test_target_classifier_values_above_half_are_clipped_before_the_ratio():
+def test_target_values_above_half_enter_the_label_unclipped_and_the_label_is_clipped_at_half():
+    # The release (method.md section 9): logit 2 everywhere, C = sigmoid(2) = 0.8808 enters the label
+    # unclipped, gamma C / (1 + (gamma - 1) C) = 0.869, which is clipped to 0.5; the weight's classifier
+    # value is clipped to 0.5, so the weight is 1 + gamma.
     gamma = 0.9
-    # logit 2 for every x: C = 0.88 is clipped to 0.5, so w = 1 and y = gamma / (1 + gamma).
     loss = RCELoss(constant_actor(0.0), linear_logit_ensemble([0.0], biases=[2.0]), gamma=gamma, n_steps=1)
+    c = sigmoid(2.0)
+    assert gamma * c / (1 + (gamma - 1) * c) > 0.5
     label, weight = loss.labels(batch(obs=[0.0], nxt=[1.0]))
-    assert label.item() == pytest.approx(gamma / (1 + gamma), rel=1e-6)
+    assert label.item() == pytest.approx(0.5, rel=1e-6)
     assert weight.item() == pytest.approx(1 + gamma, rel=1e-6)
-    assert float(weight) <= 1 + gamma
+
+
+def test_unclipped_nstep_label_reaches_half_where_clipping_first_caps_it():
+    # n = 10, both target values C = sigmoid(3) = 0.9526: unclipped, the 1-step part is 0.9521 and the
+    # n-step part (gamma^10 = 0.9044) 0.9478; their mean is above 0.5, so y = 0.5. Clipping C to 0.5
+    # first gives the cap 0.5 (gamma / (1 + gamma) + gamma^n / (1 + gamma^n)) = 0.4862.
+    gamma, n = 0.99, 10
+    ensemble = linear_logit_ensemble([0.0], biases=[3.0])
+    data = batch(obs=[0.0], nxt=[1.0], nstep=[1.0])
+    c, gn = sigmoid(3.0), gamma**n
+    unclipped = 0.5 * (gamma * c / (1 + (gamma - 1) * c) + gn * c / (1 + (gn - 1) * c))
+    assert unclipped > 0.5
+    release = RCELoss(constant_actor(0.0), ensemble, gamma=gamma, n_steps=n)
+    assert release.labels(data)[0].item() == pytest.approx(0.5, rel=1e-6)
+    clipped = RCELoss(constant_actor(0.0), ensemble, gamma=gamma, n_steps=n, clip_target_values=True)
+    cap = 0.5 * (gamma / (1 + gamma) + gn / (1 + gn))
+    assert cap == pytest.approx(0.4862, abs=1e-4)  # 0.5 (0.99 / 1.99 + 0.9044 / 1.9044)
+    assert clipped.labels(data)[0].item() == pytest.approx(cap, rel=1e-6)
+
+
+def test_labels_use_the_policy_without_noise_like_forward():
+    # An actor with additive Gaussian exploration: labels() must see its deterministic action (0),
+    # as forward does, even when called inside a RANDOM exploration context.
+    from tensordict.nn import TensorDictSequential
+    from torchrl.data import Bounded
+    from torchrl.envs.utils import ExplorationType, set_exploration_type
+    from torchrl.modules import AdditiveGaussianModule
+
+    spec = Bounded(-1.0, 1.0, shape=(1,))
+    noisy = TensorDictSequential(constant_actor(0.0), AdditiveGaussianModule(spec, sigma_init=1.0, sigma_end=1.0))
+    # member logit = -x - 4 a: the label depends on the action taken at s_{t+1}
+    ensemble = linear_logit_ensemble([1.0], action_slopes=[4.0])
+    data = batch(obs=[0.0, 0.0, 0.0], nxt=[0.2, 0.5, 1.0])
+    gamma = 0.9
+    expected = [gamma * math.exp(-x) / (1 + gamma * math.exp(-x)) for x in [0.2, 0.5, 1.0]]
+    loss = RCELoss(noisy, ensemble, gamma=gamma, n_steps=1)
+    with set_exploration_type(ExplorationType.RANDOM):
+        label, _ = loss.labels(data)
+        with torch.no_grad():
+            assert not torch.equal(noisy(data["next"].clone())["action"], torch.zeros(3, 1))  # the noise is on
+    torch.testing.assert_close(label, torch.tensor(expected), rtol=1e-5, atol=0)
+    assert loss(data)["label"].item() == pytest.approx(sum(expected) / 3, rel=1e-5)
 
 
 def test_classifier_loss_matches_hand_computed_cross_entropies():

@@ -44,11 +44,11 @@ def plain_losses(actor: nn.Module, params: dict, target: dict, priors: dict, bat
     s, a = batch["observation"], batch["action"]
     s1, sn, se = batch["next", "observation"], batch["nstep", "observation"], batch["example", "observation"]
     with torch.no_grad():
-        ratio = lambda logits: torch.sigmoid(logits).clamp(max=0.5) / (1 - torch.sigmoid(logits).clamp(max=0.5))  # noqa: E731
-        w1 = ratio(plain_logits(target, priors, s1, actor(s1)))
-        wn = ratio(plain_logits(target, priors, sn, actor(sn)))
+        # the release (method.md section 9): unclipped target values C, label c2l(C) = g C / (1 + (g - 1) C)
+        c1 = torch.sigmoid(plain_logits(target, priors, s1, actor(s1)))
+        cn = torch.sigmoid(plain_logits(target, priors, sn, actor(sn)))
         g, gn = GAMMA, GAMMA**N_STEPS
-        per_member = 0.5 * (g * w1 / (1 + g * w1) + gn * wn / (1 + gn * wn))
+        per_member = 0.5 * (g * c1 / (1 + (g - 1) * c1) + gn * cn / (1 + (gn - 1) * cn))
         y = per_member.min(-1).values.clamp(max=0.5)
         c_y = (y / (y + g * (1 - y))).clamp(0, 0.5)
         weight = 1 + g * c_y / (1 - c_y)

@@ -6,7 +6,7 @@ from .collector import DualCollector, find_trigger_transforms
 from .ddpg import DirectDDPGLoss
 from .ensemble import EnsembleValueOperator, reduce_members, success_classifier, success_probability
 from .example_buffer import InitialStateBuffer
-from .nstep import NStepStateTransform
+from .nstep import EpisodeWindowSampler, NStepStateTransform
 from .rce_loss import RCELoss
 from .trigger import ResetTriggerTransform
 
@@ -16,6 +16,7 @@ __all__ = [
     "DirectDDPGLoss",
     "DualCollector",
     "EnsembleValueOperator",
+    "EpisodeWindowSampler",
     "InitialStateBuffer",
     "NStepStateTransform",
     "RCELoss",

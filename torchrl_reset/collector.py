@@ -71,7 +71,9 @@ class DualCollector(BaseCollector):
     1. the first ``env.reset()`` gives the first state; it is added to the example buffer;
     2. forward episode: the forward policy acts until a :class:`ResetTriggerTransform` in the env
        fires (a *triggered* reset: the action is not executed and the step is not yielded) or
-       ``max_forward_steps`` (H_f) steps were taken (a *requested* reset);
+       ``max_forward_steps`` (H_f) steps were taken (a *requested* reset). As in Algorithm 1, the
+       trigger is checked first: after the H_f-th step the policy's next action is scored, and
+       a trigger there counts as triggered (that action is not executed either way);
     3. reset episode, from that very state: the reset policy acts until the env's
        ``reset_success_key`` holds after at least ``min_reset_steps`` steps (a *successful*
        reset) or ``max_reset_steps`` (H_r) steps were taken, after which the collector calls
@@ -332,19 +334,23 @@ class DualCollector(BaseCollector):
             if terminated:
                 outcome = "terminated"
             elif self._phase_steps >= self.max_forward_steps:
-                outcome = "requested"
+                # Algorithm 1 scores the next action before it checks "reached H_f": a trigger at
+                # that point is a triggered reset, else the reset is requested.
+                root = self._continue_from(td)
+                outcome = "triggered" if self._would_trigger(root) else "requested"
             if outcome is None:
                 self._td = self._continue_from(td)
                 return step, False
             self.counters["forward_episodes"] += 1
             self._mark_end(step)
-            self._record(outcome, next_td)
             if terminated:
+                self._record(outcome, next_td)
                 self.counters["terminations"] += 1
                 self._begin(FORWARD, self._manual_reset())
             else:
-                self.counters["requested_resets"] += 1
-                self._begin(RESET, self._continue_from(td))
+                self._record(outcome, root)
+                self.counters[f"{outcome}_resets"] += 1
+                self._begin(RESET, root)
             return step, True
 
         self.counters["reset_steps"] += 1
@@ -370,6 +376,16 @@ class DualCollector(BaseCollector):
             self._record(outcome, next_td)
             self._begin(FORWARD, self._manual_reset())
         return step, True
+
+    def _would_trigger(self, root: TensorDictBase) -> bool:
+        """Whether the trigger fires on the action the forward policy would take in ``root`` (which is
+        not executed either way); without a trigger transform no action is drawn."""
+        if not self.triggers:
+            return False
+        root.set(self.init_key, torch.tensor([False], device=root.device))
+        with torch.no_grad(), set_exploration_type(self.exploration_type):
+            scored = self.forward_policy(root.clone(False))  # a shallow copy: root keeps no action
+        return any(bool(trigger.score_step(scored).any()) for trigger in self.triggers if trigger.enabled)
 
     @staticmethod
     def _mark_end(step: TensorDictBase) -> None:

@@ -89,6 +89,12 @@ class InitialStateBuffer:
         data.set("index", torch.as_tensor(info["index"], dtype=torch.int64, device=data.device))
         return data
 
+    def states(self) -> TensorDictBase:
+        """Every stored example, in slot order (batch ``[len(self)]``)."""
+        if len(self) == 0:
+            raise RuntimeError("InitialStateBuffer is empty.")
+        return self._buffer[: len(self)]
+
     def state_dict(self) -> dict:
         return {"max_size": self.max_size, "state_keys": self.state_keys, "buffer": self._buffer.state_dict()}
 

@@ -1,16 +1,20 @@
 """The state n steps later, for the n-step RCE label (method.md section 3)."""
 from __future__ import annotations
 
+import json
 from collections.abc import Sequence
+from pathlib import Path
 
+import numpy as np
 import torch
 from tensordict import TensorDict, TensorDictBase
 from tensordict.utils import NestedKey
+from torchrl.data.replay_buffers.samplers import Sampler
 from torchrl.envs.transforms import Transform
 
 from ._validation import check_int
 
-__all__ = ["NStepStateTransform"]
+__all__ = ["NStepStateTransform", "EpisodeWindowSampler"]
 
 
 class NStepStateTransform(Transform):
@@ -168,3 +172,140 @@ class NStepStateTransform(Transform):
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         # Sampling reads what was written on extend; nothing to do.
         return tensordict
+
+
+class EpisodeWindowSampler(Sampler):
+    """Samples replay rows whose whole n-step window lies inside one episode, episodes first.
+
+    The authors' release draws an RCE replay row by picking an episode uniformly among those with
+    at least ``n_steps`` transitions, then a start ``t`` uniformly among the positions with
+    ``t + n - 1`` at most the episode's last transition (method.md section 9). So ``s_{t+n}`` (the
+    ``"nstep"`` entry that :class:`NStepStateTransform` writes) is always a real state n steps later
+    in the same episode; the last n - 1 transitions of an episode and episodes shorter than n are
+    never drawn. While no episode has n transitions, rows are drawn uniformly (counted in
+    ``fallbacks``; the release then uses n = 1).
+
+    Episodes are the runs of consecutive writes with the same ``traj_key`` (``("collector",
+    "traj_ids")``, written by :class:`~torchrl_reset.DualCollector`), so the storage must keep that
+    entry; rows overwritten by a full circular storage leave their episode. Random numbers come from
+    torch's global generator.
+
+    Args:
+        n_steps (int): the window length n >= 1.
+
+    Keyword Args:
+        traj_key (NestedKey): the episode id entry. Defaults to ``("collector", "traj_ids")``.
+
+    Examples:
+        >>> import torch
+        >>> from tensordict import TensorDict
+        >>> from torchrl.data import LazyTensorStorage, ReplayBuffer
+        >>> from torchrl_reset import EpisodeWindowSampler
+        >>> traj = torch.tensor([0, 0, 0, 0, 1, 1, 2, 2, 2])  # episodes of 4, 2 and 3 rows
+        >>> data = TensorDict({"t": torch.arange(9), ("collector", "traj_ids"): traj}, batch_size=[9])
+        >>> rb = ReplayBuffer(storage=LazyTensorStorage(20), sampler=EpisodeWindowSampler(3), batch_size=1000)
+        >>> _ = rb.extend(data)
+        >>> sorted(rb.sample()["t"].unique().tolist())  # windows of 3 inside episodes 0 and 2
+        [0, 1, 6]
+    """
+
+    def __init__(self, n_steps: int, *, traj_key: NestedKey = ("collector", "traj_ids")) -> None:
+        super().__init__()
+        self.n_steps = check_int("n_steps", n_steps)
+        self.traj_key = traj_key
+        self.fallbacks = 0
+        self._empty()
+
+    def _empty(self) -> None:
+        self._unread: list[torch.Tensor] = []  # written slots whose episode ids are not read yet
+        self._traj = np.zeros(0, dtype=np.int64)  # per episode segment: id, first slot, length
+        self._start = np.zeros(0, dtype=np.int64)
+        self._length = np.zeros(0, dtype=np.int64)
+        self._first = 0  # segments before it were overwritten entirely
+        self._count = 0
+        self._rows = 0  # rows held
+
+    def add(self, index) -> None:
+        self._unread.append(torch.as_tensor(index).reshape(-1))
+
+    def extend(self, index) -> None:
+        self._unread.append(torch.as_tensor(index).reshape(-1))
+
+    def _grow(self) -> None:
+        size = max(16, 2 * len(self._traj))
+        for name in ("_traj", "_start", "_length"):
+            old = getattr(self, name)
+            new = np.zeros(size, dtype=np.int64)
+            new[: len(old)] = old
+            setattr(self, name, new)
+
+    def _read(self, storage) -> None:
+        if not self._unread:
+            return
+        slots = torch.cat(self._unread)
+        self._unread = []
+        traj = storage[slots].get(self.traj_key, None)
+        if traj is None:
+            raise KeyError(f"EpisodeWindowSampler needs the episode id {self.traj_key!r} in the stored rows.")
+        capacity = storage.max_size
+        for slot, episode in zip(slots.tolist(), traj.reshape(len(slots), -1)[:, 0].tolist()):
+            if self._rows == capacity:  # the oldest row is overwritten by this one
+                first = self._first
+                self._start[first] = (self._start[first] + 1) % capacity
+                self._length[first] -= 1
+                if self._length[first] == 0:
+                    self._first += 1
+                self._rows -= 1
+            last = self._count - 1
+            if (last >= self._first and self._traj[last] == episode
+                    and (self._start[last] + self._length[last]) % capacity == slot):
+                self._length[last] += 1
+            else:
+                if self._count == len(self._traj):
+                    self._grow()
+                self._traj[self._count], self._start[self._count], self._length[self._count] = episode, slot, 1
+                self._count += 1
+            self._rows += 1
+
+    def sample(self, storage, batch_size: int) -> tuple[torch.Tensor, dict]:
+        if len(storage) == 0:
+            raise RuntimeError("EpisodeWindowSampler: cannot sample from an empty storage.")
+        self._read(storage)
+        lengths = self._length[self._first : self._count]
+        eligible = np.flatnonzero(lengths >= self.n_steps) + self._first
+        if len(eligible) == 0:
+            self.fallbacks += 1
+            return torch.randint(len(storage), (batch_size,)), {"fallback": True}
+        eligible = torch.from_numpy(eligible)
+        episode = eligible[torch.randint(len(eligible), (batch_size,))].numpy()
+        positions = torch.from_numpy(self._length[episode] - self.n_steps + 1)
+        offset = (torch.rand(batch_size, dtype=torch.float64) * positions).long().clamp_max(positions - 1)
+        index = (torch.from_numpy(self._start[episode]) + offset) % storage.max_size
+        return index, {"fallback": False}
+
+    def state_dict(self) -> dict:
+        live = slice(self._first, self._count)
+        unread = torch.cat(self._unread).tolist() if self._unread else []
+        return {"traj": self._traj[live].tolist(), "start": self._start[live].tolist(),
+                "length": self._length[live].tolist(), "rows": self._rows, "unread": unread,
+                "fallbacks": self.fallbacks}
+
+    def load_state_dict(self, state_dict: dict) -> None:
+        self._empty()
+        for name, key in (("_traj", "traj"), ("_start", "start"), ("_length", "length")):
+            setattr(self, name, np.asarray(state_dict[key], dtype=np.int64).reshape(-1))
+        self._count = len(self._traj)
+        self._rows = int(state_dict["rows"])
+        self._unread = [torch.as_tensor(state_dict["unread"], dtype=torch.long)] if state_dict["unread"] else []
+        self.fallbacks = int(state_dict.get("fallbacks", 0))
+
+    def dumps(self, path) -> None:
+        path = Path(path)
+        path.mkdir(parents=True, exist_ok=True)
+        (path / "episode_window_sampler.json").write_text(json.dumps(self.state_dict()))
+
+    def loads(self, path) -> None:
+        self.load_state_dict(json.loads((Path(path) / "episode_window_sampler.json").read_text()))
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}(n_steps={self.n_steps}, episodes={self._count - self._first}, rows={self._rows})"

@@ -8,6 +8,7 @@ import torch.nn.functional as F
 from tensordict import TensorDict, TensorDictBase, TensorDictParams
 from tensordict.nn import TensorDictModule
 from tensordict.utils import NestedKey
+from torchrl.envs.utils import set_exploration_type
 from torchrl.objectives import LossModule
 
 from ._validation import check_int
@@ -29,9 +30,12 @@ class RCELoss(LossModule):
     ``C'`` and actions from the current reset policy ``pi`` (no noise), ``w(C) = C / (1 - C)`` with
     ``C`` clipped to [0, 0.5]:
 
-    - label, per member ``i``: ``y_i = 0.5 * (g w1 / (1 + g w1) + g^n wn / (1 + g^n wn))`` with
-      ``w1 = w(C'_i(s_{t+1}, pi(s_{t+1})))`` and ``wn = w(C'_i(s_{t+n}, pi(s_{t+n})))``; with
-      ``n = 1`` it is the one-step RCE label ``g w1 / (1 + g w1)``;
+    - label, per member ``i``: ``y_i = 0.5 * (g C1 / (1 + (g - 1) C1) + g^n Cn / (1 + (g^n - 1) Cn))``
+      with ``C1 = C'_i(s_{t+1}, pi(s_{t+1}))`` and ``Cn = C'_i(s_{t+n}, pi(s_{t+n}))``, the target
+      values *unclipped* as in the authors' release (method.md section 9); ``g C / (1 + (g - 1) C)``
+      is ``g w / (1 + g w)`` written with ``C``, so with ``n = 1`` it is the one-step RCE label.
+      ``clip_target_values=True`` clips ``C1`` and ``Cn`` to [0, 0.5] first (method.md section 3's
+      reading, which caps the n-step label at about 0.486);
     - the label shared by all members is the ensemble minimum ``y = min_i y_i``, clipped at 0.5;
     - weight ``1 + g w_y`` where ``w_y`` is the ratio of the label turned back into a classifier
       value, ``c_y = y / (y + g (1 - y))`` clipped to [0, 0.5] (``w_y = w1`` when ``n = 1``);
@@ -59,6 +63,8 @@ class RCELoss(LossModule):
         gamma (float): discount in (0, 1). Defaults to 0.99. RCE's discount lives in the label,
             not in a value estimator, so it is an argument of the loss.
         n_steps (int): n of the n-step label. Defaults to 10.
+        clip_target_values (bool): clip the target classifier values to [0, 0.5] before they become
+            labels. Defaults to ``False`` (the release: only the label is clipped, at 0.5).
 
     Examples:
         >>> import torch
@@ -124,6 +130,7 @@ class RCELoss(LossModule):
         *,
         gamma: float = 0.99,
         n_steps: int = 10,
+        clip_target_values: bool = False,
     ) -> None:
         super().__init__()
         gamma = float(gamma)
@@ -137,6 +144,7 @@ class RCELoss(LossModule):
         self._tensor_keys = self._AcceptedKeys()
         self.gamma = gamma
         self.n_steps = n_steps
+        self.clip_target_values = bool(clip_target_values)
         self._check_networks(actor_network, classifier_network)
         self.convert_to_functional(actor_network, "actor_network")
         self.convert_to_functional(classifier_network, "classifier_network", create_target_params=True)
@@ -210,7 +218,8 @@ class RCELoss(LossModule):
     def labels(self, tensordict: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor]:
         """The shared label ``y`` and weight ``1 + gamma * w_y`` for each transition, without gradient."""
         replay = tensordict.reshape(-1) if tensordict.batch_dims != 1 else tensordict
-        with torch.no_grad():
+        # the actions of the current policy without noise, as in forward (which torchrl runs deterministically)
+        with torch.no_grad(), set_exploration_type(self.deterministic_sampling_mode):
             states = self._target_states(replay)
             return self._labels_from(self.classifier_network.observation_from(states), self._act(states), replay.shape[0])
 
@@ -225,13 +234,16 @@ class RCELoss(LossModule):
         """Labels and weights from ``s_{t+1}`` (and ``s_{t+n}``) stacked, with the policy's actions there."""
         gamma = self.gamma
         logits = self.classifier_network.logits(observation, action, self.target_classifier_network_params)
-        ratio = success_probability(logits)
-        w1 = ratio[:batch]
-        label = gamma * w1 / (1.0 + gamma * w1)
-        if self.n_steps > 1:
-            discount = gamma**self.n_steps
-            wn = ratio[batch:]
-            label = 0.5 * (label + discount * wn / (1.0 + discount * wn))
+        value = torch.sigmoid(logits)
+        if self.clip_target_values:
+            value = value.clamp(0.0, 0.5)
+
+        def label_of(c: torch.Tensor, discount: float) -> torch.Tensor:
+            return discount * c / (1.0 + (discount - 1.0) * c)  # = discount w / (1 + discount w), w = c / (1 - c)
+
+        label = label_of(value[:batch], gamma)
+        if value.shape[0] > batch:  # the n-step part
+            label = 0.5 * (label + label_of(value[batch:], gamma**self.n_steps))
         label = label.amin(-1).clamp(max=0.5)
         classifier_value = (label / (label + gamma * (1.0 - label))).clamp(0.0, 0.5)
         weight = 1.0 + gamma * classifier_value / (1.0 - classifier_value)
@@ -302,5 +314,5 @@ class RCELoss(LossModule):
         return out
 
     def extra_repr(self) -> str:
-        return f"gamma={self.gamma}, n_steps={self.n_steps}, num_members={self.classifier_network.num_members}"
+        return f"gamma={self.gamma}, n_steps={self.n_steps}, clip_target_values={self.clip_target_values}, num_members={self.classifier_network.num_members}"
 

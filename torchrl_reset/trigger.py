@@ -161,9 +161,12 @@ class ResetTriggerTransform(Transform):
                 return self.reduction(out)
             return reduce_members(out, self.reduction)
 
-    def _inv_call(self, tensordict: TensorDictBase) -> TensorDictBase:
-        if not self.enabled:
-            return tensordict
+    def score_step(self, tensordict: TensorDictBase) -> torch.Tensor:
+        """Scores the action in ``tensordict`` as a step would (smoothing included), writes the score
+        and the flag into it and returns the flag (shape ``batch_size``); executes nothing.
+
+        :class:`~torchrl_reset.DualCollector` calls it on the action drawn after the H_f-th step
+        (Algorithm 1 scores that action before it checks the horizon)."""
         score = self.evaluate(tensordict)
         if self.smoothing > 0:
             if self._smoothed is not None and self._smoothed.shape == score.shape:
@@ -172,6 +175,12 @@ class ResetTriggerTransform(Transform):
         trigger = score < self.threshold
         tensordict.set(self.score_key, score.unsqueeze(-1))
         tensordict.set(self.trigger_key, trigger.unsqueeze(-1))
+        return trigger
+
+    def _inv_call(self, tensordict: TensorDictBase) -> TensorDictBase:
+        if not self.enabled:
+            return tensordict
+        trigger = self.score_step(tensordict)
         if trigger.any():
             step = tensordict.get("_step", None)
             tensordict.set("_step", ~trigger if step is None else step.reshape(trigger.shape) & ~trigger)

@@ -1,0 +1,101 @@
+"""What explains a run over time: the trigger's scores, the reset classifier on examples, replay and
+forward states, and how far each reset episode ended from the start (``diagnostics.csv``, ``resets.csv``).
+
+The paper's claim to check is that the trigger fires early in training, while the reset agent is not
+yet capable, because the ensemble with randomized priors is uncertain there. These columns show
+whether the classifier is optimistic or pessimistic where the trigger looks, and whether failed resets
+end near or far from the initial state.
+"""
+from __future__ import annotations
+
+import math
+
+import torch
+from tensordict import TensorDict
+
+from torchrl_reset import success_probability
+
+DIAGNOSTIC_FIELDS = [
+    "frames", "trigger_score_mean", "trigger_score_min", "trigger_below_share", "trigger_scored_steps",
+    "examples", "example_c", "example_p", "reset_replay_c", "reset_replay_p", "forward_p", "forward_p_min_member",
+    "forward_p_member_std", "forward_below_share", "sampler_fallbacks",
+]
+RESET_FIELDS = ["frames", "outcome", "steps", "distance_to_start", "distance_to_examples"]
+
+
+class TriggerScores:
+    """Accumulates the trigger's score on every executed forward step between two log rows."""
+
+    def __init__(self, score_key, threshold: float):
+        self.score_key, self.threshold = score_key, float(threshold)
+        self._scores: list[torch.Tensor] = []
+
+    def add(self, batch) -> None:
+        score = batch.get(("next", self.score_key), None)
+        if score is not None:
+            self._scores.append(score.reshape(-1).detach().cpu())
+
+    def row(self) -> dict:
+        scores = torch.cat(self._scores) if self._scores else torch.zeros(0)
+        self._scores = []
+        scores = scores[torch.isfinite(scores)]
+        if not len(scores):
+            return {"trigger_score_mean": math.nan, "trigger_score_min": math.nan, "trigger_below_share": math.nan,
+                    "trigger_scored_steps": 0}
+        return {"trigger_score_mean": float(scores.mean()), "trigger_score_min": float(scores.min()),
+                "trigger_below_share": float((scores < self.threshold).float().mean()),
+                "trigger_scored_steps": len(scores)}
+
+
+@torch.no_grad()
+def probe_classifier(algo: str, model, reset_actor, examples, forward_rb, reset_rb, threshold: float) -> dict:
+    """The reset agent's model on examples (with the reset policy's action), reset replay (the taken
+    action) and forward replay (the forward agent's taken action, as the trigger sees it).
+
+    Ours: ``*_c`` the ensemble-mean classifier value C, ``*_p`` the ensemble-mean success probability
+    p = C / (1 - C) with C clipped to [0, 0.5]. LNT: the ``*_p`` columns hold the ensemble minimum of the
+    reset Q (its trigger score) and the ``*_c`` columns are left empty.
+    """
+    out = {"examples": len(examples)}
+
+    def scores(data: TensorDict) -> tuple[torch.Tensor, torch.Tensor]:
+        values = model(data.select(*model.in_keys).clone(False)).get(model.out_keys[0])
+        if algo == "ours":
+            return torch.sigmoid(values), success_probability(values)
+        return torch.full_like(values, math.nan), values
+
+    def reduce(p: torch.Tensor) -> torch.Tensor:
+        return p.mean(-1) if algo == "ours" else p.amin(-1)
+
+    if len(examples):
+        sample = examples.sample(reset_rb.batch_size if len(reset_rb) else 256)
+        sample = reset_actor(sample.select(*reset_actor.in_keys))
+        c, p = scores(sample)
+        out.update(example_c=float(c.mean()), example_p=float(reduce(p).mean()))
+    if len(reset_rb):
+        c, p = scores(reset_rb.sample())
+        out.update(reset_replay_c=float(c.mean()), reset_replay_p=float(reduce(p).mean()))
+    if len(forward_rb):
+        _, p = scores(forward_rb.sample())
+        trigger = reduce(p)
+        out.update(forward_p=float(trigger.mean()), forward_p_min_member=float(p.amin(-1).mean()),
+                   forward_p_member_std=float(p.std(-1).mean()) if p.shape[-1] > 1 else 0.0,
+                   forward_below_share=float((trigger < threshold).float().mean()))
+    return out
+
+
+class ResetDistances:
+    """How far each reset episode ended from the first start state and from the nearest example."""
+
+    def __init__(self, examples, key="observation"):
+        self.examples, self.key = examples, key
+        self._start = None
+
+    def row(self, event: dict) -> dict:
+        states = self.examples.states().get(self.key).reshape(len(self.examples), -1).float()
+        if self._start is None:
+            self._start = states[0].clone()
+        last = event["state"].get(self.key).reshape(-1).float()
+        return {"frames": event["frame"], "outcome": event["outcome"], "steps": event["steps"],
+                "distance_to_start": float((last - self._start).norm()),
+                "distance_to_examples": float((states - last).norm(dim=-1).min())}
