@@ -33,22 +33,34 @@ def sim_manual_reset(env: UR3Env) -> None:
 
 
 def console_manual_reset(env: UR3Env, prompt: Callable[[str], str] = input, attempts: int = 3) -> None:
-    """The real-robot manual reset: ask a person where needed, move home slowly, verify.
+    """The real-robot manual reset: recover the robot, move home slowly, verify; a person only where needed.
 
-    A person is asked to clear a protective stop the dashboard could not unlock, to put a spilled
-    stick back, and to bring the arm near home when the slow move fails ``attempts`` times.
+    1. Stop (best-effort: a protectively stopped controller refuses even ``speedStop``).
+    2. A halted robot (protective stop) is recovered by the backend (:meth:`RTDEBackend.recover`:
+       wait the controller's 5 s, unlock through the dashboard, re-upload the control script, check
+       that it runs). Only when that fails (or the halt is one software may not clear, such as a
+       safeguard stop or a powered-off robot) is the person at the console asked to clear it.
+    3. A spilled stick (ur3-reacher) is put back by the person.
+    4. Up to ``attempts`` slow moves home; if they all fail, the person brings the arm near home.
     """
     backend = env.backend
     backend.stop()
     state = backend.read_state()
-    if state.protective_stop and not (hasattr(backend, "unlock_protective_stop") and backend.unlock_protective_stop()):
-        prompt("UR3: protective stop. Clear it on the teach pendant, then press Enter.")
+    if state.halted and not backend.recover():
+        prompt(f"UR3: {state.reason} that could not be cleared automatically. Clear it on the teach pendant "
+               "(check the cell first), then press Enter.")
+        if not backend.recover():
+            raise RuntimeError(f"UR3: the robot is still halted ({backend.read_state().reason}); stopping.")
     if env.task == "reacher" and env.spilled:
         prompt("UR3: the stick is spilled. Put it back upright in the cup, then press Enter.")
     for _ in range(attempts):
         if backend.move_home(HOME_Q, speed=env.home_speed):
             return
+        if backend.read_state().halted and not backend.recover():
+            break
     prompt(f"UR3: could not reach home after {attempts} slow moves. Bring the arm near home (freedrive), then press Enter.")
+    if backend.read_state().halted:
+        backend.recover()
     if not backend.move_home(HOME_Q, speed=env.home_speed):
         raise RuntimeError("UR3: the arm did not reach home after the person's help; stopping.")
 
@@ -69,7 +81,8 @@ class UR3Env(EnvBase):
                         stick not spilled
     reset_reward        ``(0.8 [reset_success] + 0.2 Cond(|q - home|; 0, 0.05, 1)) (1 - spilled)``
     irrecoverable       reacher: the stick spilled (latched until a manual reset); peg: none
-    terminated          on a protective stop (real arm); never in simulation
+    terminated          when the robot halts (real arm: a protective or safeguard stop, a robot that
+                        is not RUNNING in normal or reduced mode); never in simulation
     start state         home: flange pointing down 0.4 m above the table, at rest (no noise)
     H_f, p_thresh       100 (4 s), 0.1
     ==================  ==========================================================================
@@ -97,7 +110,8 @@ class UR3Env(EnvBase):
         home_speed (float): joint speed of the slow move home on the real arm (rad/s). Defaults to 0.2.
         spill_angle (float): see above, in radians. Defaults to 60 degrees.
         manual_reset, stick_sensor (callable, optional): see above.
-        limits (SafetyLimits, optional): for ``"rtde"``.
+        limits (SafetyLimits, optional): the real backend's safety limits (``"rtde"``); with ``"sim"``
+            the twin filters its commands the same way (by default it does not).
 
     Examples:
         >>> from torchrl.envs.utils import check_env_specs
@@ -129,7 +143,7 @@ class UR3Env(EnvBase):
         if isinstance(backend, UR3Backend):
             self.backend = backend
         elif backend == "sim":
-            self.backend = SimBackend(task)
+            self.backend = SimBackend(task, limits=limits, period=period)
         elif backend == "rtde":
             if not host:
                 raise ValueError("backend='rtde' needs host=<the controller's address>.")
@@ -142,6 +156,7 @@ class UR3Env(EnvBase):
         self.manual_reset = manual_reset or (sim_manual_reset if sim else console_manual_reset)
         self.stick_sensor = stick_sensor
         self.overruns = 0
+        self.halts = 0
         self.spilled = False
         self._deadline = 0.0
         self._last_warning = -math.inf
@@ -183,8 +198,8 @@ class UR3Env(EnvBase):
             reset_success=torch.tensor([at_home], device=dev),
             irrecoverable=torch.tensor([self.spilled], device=dev),
             reset_reward=torch.tensor([reset_reward], dtype=torch.float32, device=dev),
-            done=torch.tensor([state.protective_stop], device=dev),
-            terminated=torch.tensor([state.protective_stop], device=dev),
+            done=torch.tensor([state.halted], device=dev),
+            terminated=torch.tensor([state.halted], device=dev),
         )
 
     def forward_reward(self, q: np.ndarray) -> float:
@@ -219,8 +234,10 @@ class UR3Env(EnvBase):
         state = self.backend.read_state()
         out = self._observe(state)
         out.set("reward", torch.tensor([self.forward_reward(state.q)], dtype=torch.float32, device=self.device))
-        if state.protective_stop:
-            self.backend.stop()
+        if state.halted:
+            self.halts += 1
+            self.backend.stop()  # best-effort: a protectively stopped controller refuses it
+            log.warning("UR3: %s: the episode ends.", state.reason)
         return out
 
     def _overrun(self, waited: float) -> None:
@@ -234,6 +251,11 @@ class UR3Env(EnvBase):
                 RuntimeWarning,
                 stacklevel=3,
             )
+
+    def safety_counters(self) -> dict[str, int]:
+        """Episodes ended by a halted robot, plus the backend's counters (protective stops, host
+        watchdog stops, safety-filter counts)."""
+        return {"halts": self.halts, **self.backend.counters()}
 
     def time_left(self) -> float:
         """Seconds until the next step must be called to keep the control period."""

@@ -49,6 +49,7 @@ from train_utils import (  # noqa: E402
     realtime_env,
     reset_horizon,
     retain_freed_memory,
+    safety_counters,
     task_dimensions,
     UpdateBudget,
     validate,
@@ -64,12 +65,13 @@ from diagnostics import (  # noqa: E402
 )
 
 from torchrl_reset import DualCollector  # noqa: E402
+from torchrl_reset_envs.ur3_backends import RobotFault  # noqa: E402
 
 PROGRESS_FIELDS = [
     "frames", "forward_steps", "reset_steps", "forward_episodes", "reset_episodes", "manual_resets",
     "triggered_resets", "requested_resets", "successful_resets", "forward_share", "reset_success_rate",
     "eval_return", "average_return", "steps_per_second", "loss_forward_actor", "loss_forward_critic",
-    "loss_reset_actor", "loss_reset_critic", "skipped_updates",
+    "loss_reset_actor", "loss_reset_critic", "skipped_updates", "protective_stops",
 ]
 EVAL_FIELDS = ["frames", "forward_return", "forward_steps", "triggered", "reset_success", "reset_steps"]
 TRIGGER_FIELDS = ["frames", "steps", "value", "observation"]
@@ -79,6 +81,10 @@ log = logging.getLogger("torchrl_reset.train")
 
 class TrainingDiverged(RuntimeError):
     """A loss became NaN or infinite; the last good state was checkpointed."""
+
+
+class RobotStopped(RuntimeError):
+    """The robot reported a fault the run must not go on through; the run was checkpointed."""
 
 
 def train(cfg: DictConfig) -> dict:
@@ -218,6 +224,7 @@ def train(cfg: DictConfig) -> dict:
             "eval_return": returns[-1] if returns else float("nan"),
             "average_return": float(np.mean(returns)) if returns else float("nan"),
             "steps_per_second": collector.frames / max(elapsed, 1e-9), "skipped_updates": budget.skipped, **losses,
+            "protective_stops": safety_counters(env).get("protective_stops", 0),
         }
 
     # wall time of the steps of each phase once its agent updates (env step, policy, trigger, buffer, update),
@@ -291,6 +298,11 @@ def train(cfg: DictConfig) -> dict:
     except KeyboardInterrupt:
         interrupted = True
         log.warning("interrupted at step %d: checkpointing", collector.frames)
+    except RobotFault as err:  # the robot must not go on (emergency stop, too many protective stops...)
+        bar.close()
+        history["elapsed"] = time.perf_counter() - start
+        path = checkpoint()
+        raise RobotStopped(f"{err} The run is checkpointed in {path}; resume=true continues it.") from err
     finally:
         bar.close()
     history["elapsed"] = time.perf_counter() - start
@@ -307,6 +319,8 @@ def train(cfg: DictConfig) -> dict:
         **{k: collector.counters[k] for k in ("triggered_resets", "requested_resets", "successful_resets", "reset_episodes")},
         "skipped_updates": budget.skipped,
         "overruns": getattr(robot, "overruns", 0),
+        "protective_stops": safety_counters(env).get("protective_stops", 0),
+        "safety": safety_counters(env),
         "seconds": round(history["elapsed"], 1),
         "steps_per_second": round(collector.frames / max(history["elapsed"], 1e-9), 1),
         "step_seconds": {name: (total / count if count else None) for name, (total, count) in step_time.items()},
@@ -351,9 +365,9 @@ def _json_default(value):
 def main(cfg: DictConfig) -> None:
     try:
         summary = train(cfg)
-    except (ConfigError, TrainingDiverged) as err:
+    except (ConfigError, TrainingDiverged, RobotStopped) as err:
         print(f"error: {err}", file=sys.stderr)
-        sys.exit(2 if isinstance(err, ConfigError) else 3)
+        sys.exit({ConfigError: 2, TrainingDiverged: 3}.get(type(err), 4))
     width = max(map(len, summary))
     for key, value in summary.items():
         print(f"{key:<{width}}  {value:.4g}" if isinstance(value, float) else f"{key:<{width}}  {value}")

@@ -425,6 +425,15 @@ def realtime_env(env: TransformedEnv):
     return base if backend is not None and getattr(backend, "realtime", False) and hasattr(base, "time_left") else None
 
 
+def safety_counters(env: TransformedEnv) -> dict[str, int]:
+    """The robot's safety counters (protective stops, host watchdog stops...) when the env has them (UR3Env)."""
+    base = env
+    while isinstance(base, TransformedEnv):
+        base = base.base_env
+    counters = getattr(base, "safety_counters", None)
+    return dict(counters()) if callable(counters) else {}
+
+
 # ------------------------------------------------------------------------------------------ evaluation
 def evaluate(env: TransformedEnv, trigger: ResetTriggerTransform, forward_actor, reset_actor, *, horizon: int,
              reset_horizon: int, min_reset_steps: int, gamma: float,

@@ -16,11 +16,11 @@ from torchrl_reset_envs.ur3_backends import (
     RobotFault,
     RobotState,
     RTDEBackend,
-    SafetyLimits,
     UR3Backend,
-    filter_command,
 )
 from torchrl_reset_envs.ur3_model import HOME_Q, VELOCITY_LIMITS, build_ur3_spec, flange_pose
+
+from fake_ur_rtde import FakeURController
 
 W = math.atanh(math.sqrt(0.95))
 
@@ -175,7 +175,8 @@ class ClockedBackend(UR3Backend):
         pass
 
     def read_state(self):
-        return RobotState(HOME_Q.copy(), np.zeros(6), self.clock(), protective_stop=self.protective)
+        return RobotState(HOME_Q.copy(), np.zeros(6), self.clock(), protective_stop=self.protective,
+                          halted=self.protective, reason="protective stop" if self.protective else None)
 
     def speedj(self, qd, acceleration):
         self.commands.append((self.clock(), np.array(qd)))
@@ -225,224 +226,199 @@ def test_protective_stop_ends_the_episode_and_stops_the_arm():
     assert td["terminated"].item() and td["done"].item() and backend.commands[-1][1] == "stop"
 
 
-# ---------------------------------------------------------------------------------------------- rtde backend, fakes
-class FakeRTDEControl:
-    """The methods of ur_rtde's RTDEControlInterface that the backend uses, with its return conventions."""
-
-    def __init__(self, host, receive=None):
-        self.host = host
-        self.receive = receive
-        self.calls = []
-        self.accept = True
-        self.raise_on_speedj = None
-        self.reach_home = True
-
-    def _log(self, name, *args):
-        self.calls.append((name, *args))
-        return self.accept
-
-    def setWatchdog(self, min_frequency=10.0):
-        return self._log("setWatchdog", min_frequency)
-
-    def kickWatchdog(self):
-        return self._log("kickWatchdog")
-
-    def speedJ(self, qd, acceleration=0.5, time=0.0):
-        if self.raise_on_speedj is not None:
-            raise self.raise_on_speedj
-        return self._log("speedJ", list(qd), acceleration, time)
-
-    def speedStop(self, a=10.0):
-        self.calls.append(("speedStop", a))
-        return True
-
-    def moveJ(self, q, speed=1.05, acceleration=1.4, asynchronous=False):
-        if self.reach_home and self.receive is not None:
-            self.receive.q = np.array(q)
-        return self._log("moveJ", list(q), speed, acceleration, asynchronous)
-
-    def stopScript(self):
-        self.calls.append(("stopScript",))
-
-    def disconnect(self):
-        self.calls.append(("disconnect",))
-
-    def names(self):
-        return [c[0] for c in self.calls]
-
-
-class FakeRTDEReceive:
-    """ur_rtde's RTDEReceiveInterface: after a link drop it keeps returning the last values."""
-
-    def __init__(self, host, clock):
-        self.host, self.clock = host, clock
-        self.q = HOME_Q.copy()
-        self.qd = np.zeros(6)
-        self.connected = True
-        self.frozen = False
-        self.bits = 1  # normal
-        self._timestamp = 0.0
-
-    def isConnected(self):
-        return self.connected
-
-    def getTimestamp(self):
-        if self.connected and not self.frozen:
-            self._timestamp = self.clock()
-        return self._timestamp
-
-    def getActualQ(self):
-        return list(self.q)
-
-    def getActualQd(self):
-        return list(self.qd)
-
-    def getSafetyStatusBits(self):
-        return self.bits
-
-    def disconnect(self):
-        self.connected = False
-
-
+# ---------------------------------------------------------------------------------------------- rtde backend, faithful fake
+# The fake controller (tests/fake_ur_rtde.py) refuses commands as a UR controller does: during a
+# protective stop (speedStop included), while its control script is stopped, on a robot that is not
+# RUNNING; its unlock is refused for 5 s; its watchdog stops the script when not kicked.
 @pytest.fixture
 def rtde():
     clock = FakeClock()
-    receive = FakeRTDEReceive("robot", clock)
-    control = FakeRTDEControl("robot", receive)
-    backend = RTDEBackend("robot", control_factory=lambda host: control, receive_factory=lambda host: receive,
-                          clock=clock, sleep=clock.sleep)
+    robot = FakeURController(clock)
+    backend = RTDEBackend("robot", control_factory=robot.control, receive_factory=robot.receive,
+                          dashboard_factory=robot.dashboard, clock=clock, sleep=clock.sleep)
     backend.connect()
-    return backend, control, receive, clock
+    yield backend, robot, clock
+    backend.close()
 
 
 def test_rtde_arms_the_watchdog_and_kicks_it_with_every_command(rtde):
-    backend, control, receive, clock = rtde
-    assert control.calls[0] == ("setWatchdog", backend.limits.watchdog_hz)
+    backend, robot, clock = rtde
+    assert robot.log[0][1:] == ("setWatchdog", True) and robot.watchdog_hz == backend.limits.watchdog_hz
     for _ in range(3):
-        clock.t += 0.04
-        backend.read_state()
         backend.speedj(np.zeros(6))
-    assert control.names()[1:] == ["speedJ", "kickWatchdog"] * 3
+        backend.wait_until(clock.t + 0.04)
+    assert robot.names()[1:] == ["speedJ", "kickWatchdog"] * 3
+    # without commands the controller's watchdog stops the script after 1 / watchdog_hz (0.2 s) ...
+    clock.t += 0.25
+    state = backend.read_state()
+    assert robot.watchdog_trips == 1 and state.halted and state.reason == "control script not running"
+    assert not state.protective_stop
+    # ... and recover() re-uploads it and re-arms the watchdog
+    assert backend.recover() and robot.program_running and robot.watchdog_hz == backend.limits.watchdog_hz
 
 
-def test_rtde_clips_velocities_to_a_fraction_of_the_hardware_limits(rtde):
-    backend, control, receive, clock = rtde
-    sent = backend.speedj(np.array([5.0, -5.0, 0.1, 9.0, -9.0, 0.0]))
-    limit = backend.limits.speed_fraction * VELOCITY_LIMITS  # 0.25 * (pi, pi, pi, 2pi, 2pi, 2pi)
-    np.testing.assert_allclose(np.abs(sent[[0, 1, 3, 4]]), limit[[0, 1, 3, 4]], rtol=0, atol=1e-12)
-    assert sent[2] == pytest.approx(0.1)
-    assert control.calls[-2][1] == pytest.approx(list(sent)) and control.calls[-2][2] == backend.limits.acceleration
+def test_rtde_sends_the_filtered_command_and_never_more_than_the_cap(rtde):
+    backend, robot, clock = rtde
+    cap = 0.25 * VELOCITY_LIMITS  # (pi, pi, pi, 2pi, 2pi, 2pi) / 4
+    sent = []
+    for _ in range(60):  # 2.4 s of a 9 rad/s command: the arm ramps at a dt per period, up to the cap
+        sent.append(backend.speedj(np.array([9.0, -9.0, 0.1, 9.0, -9.0, 0.0])))
+        backend.wait_until(clock.t + 0.04)
+    sent = np.array(sent)
+    assert np.all(np.abs(sent) <= cap + 1e-12)
+    assert np.all(np.abs(np.diff(sent, axis=0)) <= 1.4 * 0.04 + 1e-9)  # reachable in one period at a = 1.4
+    speeds = [entry for entry in robot.log if entry[1] == "speedJ"]
+    assert len(speeds) == 60 and np.abs(robot.qd).max() <= cap.max() + 1e-9
 
 
-def test_rtde_joint_box_zeroes_outward_components_only():
-    limits = SafetyLimits(cartesian_low=np.full(3, -10.0), cartesian_high=np.full(3, 10.0))
-    q = HOME_Q.copy()
-    q[2] = limits.joint_high[2] - 0.001  # at the edge of the box on the elbow
-    out = filter_command(q, np.array([0.1, 0.0, 0.5, 0.0, 0.0, 0.0]), 0.04, limits)
-    assert out[2] == 0.0 and out[0] == pytest.approx(0.1)
-    back = filter_command(q, np.array([0.0, 0.0, -0.5, 0.0, 0.0, 0.0]), 0.04, limits)
-    assert back[2] == pytest.approx(-0.5)
-
-
-def test_rtde_cartesian_box_removes_the_outward_motion():
-    p_home = flange_pose(HOME_Q)[0]
-    limits = SafetyLimits(cartesian_low=p_home - np.array([0.3, 0.3, 0.001]), cartesian_high=p_home + 0.3)
-    # joint velocities that move the flange straight down (the floor of the box is 1 mm below)
-    jac = np.stack([(flange_pose(HOME_Q + dq)[0] - p_home) / 1e-6 for dq in np.eye(6) * 1e-6], axis=1)
-    qd = np.linalg.pinv(jac) @ np.array([0.02, 0.0, -0.05])  # within the speed limits: no clipping
-    out = filter_command(HOME_Q, qd, 0.04, limits)
-    v = jac @ out
-    assert v[2] > -1e-3  # no more downward motion (to first order)
-    assert v[0] == pytest.approx(0.02, abs=1e-3) and abs(v[1]) < 1e-3  # the sideways part survives
-
-
-def test_rtde_stops_on_a_refused_command_and_on_an_exception(rtde):
-    backend, control, receive, clock = rtde
-    control.accept = False
+def test_rtde_refused_command_without_a_halt_and_an_exception_stop_the_arm(rtde, monkeypatch):
+    backend, robot, clock = rtde
+    control = backend.control
+    monkeypatch.setattr(control, "speedJ", lambda *args: False)  # refused for no visible reason
     with pytest.raises(RobotFault, match="speedJ returned False"):
         backend.speedj(np.zeros(6))
-    assert control.names()[-1] == "speedStop"
-    control.accept = True
-    control.raise_on_speedj = OSError("socket closed")
+    assert robot.names()[-1] == "speedStop"
+
+    def broken(*args):
+        raise OSError("socket closed")
+
+    monkeypatch.setattr(control, "speedJ", broken)
     with pytest.raises(OSError):
         backend.speedj(np.zeros(6))
-    assert control.names()[-1] == "speedStop"
+    assert robot.names()[-1] == "speedStop"
 
 
 def test_rtde_close_stops_and_disconnects_once(rtde):
-    backend, control, receive, clock = rtde
+    backend, robot, clock = rtde
     backend.close()
-    assert control.names()[-3:] == ["speedStop", "stopScript", "disconnect"]
-    n = len(control.calls)
+    assert robot.names()[-3:] == ["speedStop", "stopScript", "disconnect"]
+    n = len(robot.log)
     backend.close()
-    assert len(control.calls) == n
+    assert len(robot.log) == n
 
 
 def test_rtde_link_drop_and_stale_state_stop_the_arm(rtde):
-    backend, control, receive, clock = rtde
+    backend, robot, clock = rtde
     clock.t += 0.04
     backend.read_state()
-    receive.frozen = True  # ur_rtde keeps returning the last values
+    robot.stall()  # the receive side keeps returning the last values
     clock.t += 0.05
     backend.read_state()  # 50 ms without progress: still tolerated
     clock.t += 0.06
     with pytest.raises(ConnectionLost, match="not advanced"):
         backend.read_state()
-    assert control.names()[-1] == "speedStop"
-    receive.frozen = False
-    receive.connected = False
+    assert robot.names()[-1] == "speedStop"
+    robot.stall(False)
+    robot.connected = False
     with pytest.raises(ConnectionLost, match="lost the RTDE link"):
         backend.read_state()
 
 
-def test_rtde_protective_stop_is_reported_and_emergency_stop_is_fatal(rtde):
-    backend, control, receive, clock = rtde
-    receive.bits = 1 | 1 << 2
+def test_rtde_protective_stop_is_a_flag_and_stopping_is_best_effort(rtde):
+    backend, robot, clock = rtde
+    robot.protective_stop()
     clock.t += 0.04
-    assert backend.read_state().protective_stop
-    receive.bits = 1 | 1 << 7
+    state = backend.read_state()
+    assert state.protective_stop and state.halted and state.reason == "protective stop"
+    # the controller refuses every command now, speedStop included: nothing raises, nothing is sent
+    backend.stop()
+    assert robot.log[-1][1:] == ("speedStop", False)
+    assert np.all(backend.speedj(np.full(6, 0.1)) == 0.0) and robot.log[-1][1] == "speedStop"
+    assert backend.protective_stops == 1
+
+
+def test_rtde_emergency_stop_is_fatal(rtde):
+    backend, robot, clock = rtde
+    robot.safety_mode = 7  # robot emergency stop
     clock.t += 0.04
     with pytest.raises(RobotFault, match="emergency stop"):
         backend.read_state()
 
 
+@pytest.mark.parametrize("mode, reason", [(5, "robot mode IDLE"), (3, "robot mode POWER_OFF")])
+def test_rtde_a_robot_that_is_not_running_halts_the_episode(rtde, mode, reason):
+    backend, robot, clock = rtde
+    robot.robot_mode = mode
+    clock.t += 0.04
+    state = backend.read_state()
+    assert state.halted and state.reason == reason and not state.protective_stop
+    assert not backend.recover()  # software does not power the arm on: a person is asked
+
+
 def test_rtde_too_many_protective_stops_is_fatal(rtde):
-    backend, control, receive, clock = rtde
+    backend, robot, clock = rtde
     with pytest.raises(RobotFault, match="protective stops within"):
         for _ in range(backend.limits.max_protective_stops + 1):
-            clock.t += 2.0
-            receive.bits = 1 | 1 << 2
+            robot.protective_stop()
+            clock.t += 0.04
             backend.read_state()
+            assert backend.recover()  # waits out the 5 s, unlocks, re-uploads
 
 
-def test_ur3_env_on_the_rtde_backend_with_fakes_steps_and_ends_on_a_protective_stop(rtde):
-    backend, control, receive, clock = rtde
-    env = UR3Env("peg", backend=backend)
-    td = env.reset()  # console manual reset: moves home (the fake arrives), no prompt needed
-    assert td["reset_success"].item() and ("moveJ", list(HOME_Q), 0.2, 0.5, True) in control.calls
+def test_rtde_recovery_waits_for_the_unlock_and_restarts_the_script(rtde):
+    backend, robot, clock = rtde
+    clock.t = 10.0
+    robot.protective_stop()
+    clock.t += 0.04
+    backend.read_state()
+    started = clock.t
+    # an unlock right away is refused by the controller (ur_rtde raises)
+    with pytest.raises(RuntimeError, match="until 5s after occurrence"):
+        backend.dashboard.unlockProtectiveStop()
+    assert backend.recover()
+    unlocks = [(t, ok) for t, name, ok in robot.log if name == "unlockProtectiveStop"]
+    assert unlocks[-1][1] and unlocks[-1][0] >= 10.0 + 5.0  # unlocked only once the controller accepts it
+    assert robot.names()[-1] == "setWatchdog" and robot.program_running and robot.safety_mode == 1
+    assert clock.t - started < 6.0
+    # the next command goes through again
+    backend.speedj(np.full(6, 0.02))
+    assert robot.log[-1][1:] == ("kickWatchdog", True)
+
+
+def test_ur3_env_on_the_rtde_backend_ends_the_episode_on_a_protective_stop_and_recovers(rtde):
+    backend, robot, clock = rtde
+    asked = []
+    env = UR3Env("peg", backend=backend, manual_reset=lambda env: console_manual_reset(env, prompt=asked.append))
+    td = env.reset()  # console manual reset: moves home (the fake arm arrives), no prompt needed
+    assert td["reset_success"].item() and "moveJ" in robot.names()
     for _ in range(3):
-        td = env.step(td.set("action", torch.full((6,), 0.1)))["next"]
-    assert control.names().count("speedJ") == 3 and env.overruns == 0
-    receive.bits = 1 | 1 << 2
-    td = env.step(td.set("action", torch.zeros(6)))["next"]
-    assert td["terminated"].item() and control.names()[-1] == "speedStop"
+        td = env.step(td.set("action", torch.full((6,), 0.05)))["next"]
+    assert robot.names().count("speedJ") == 3 and env.overruns == 0
+    robot.protective_stop()
+    td = env.step(td.set("action", torch.zeros(6)))["next"]  # no exception: the episode ends with a flag
+    assert td["terminated"].item() and td["done"].item()
+    assert robot.log[-1][1:] == ("speedStop", False)  # best-effort stop, refused
+    td = env.reset()  # the manual reset recovers the robot, moves home and training goes on
+    assert asked == [] and td["reset_success"].item() and not td["done"].item()
+    td = env.step(td.set("action", torch.full((6,), 0.05)))["next"]
+    assert not td["terminated"].item() and robot.log[-1][1:] == ("kickWatchdog", True)
+    assert env.safety_counters()["protective_stops"] == 1 and env.safety_counters()["halts"] == 1
 
 
-def test_console_manual_reset_asks_a_person_when_needed(rtde):
-    backend, control, receive, clock = rtde
+def test_console_manual_reset_asks_a_person_only_when_recovery_or_the_move_fails(rtde):
+    backend, robot, clock = rtde
     env = UR3Env("reacher", backend=backend, manual_reset=lambda env: None, home_speed=0.1)
     env.reset()
-    env.spilled = True
-    receive.q = HOME_Q + 0.3  # away from home, and the slow moves will not get there
-    control.reach_home = False
+    # a robot left idle: software may not clear it, so the person is asked; then it still is idle
+    robot.robot_mode = 5
     asked = []
+    with pytest.raises(RuntimeError, match="still halted"):
+        console_manual_reset(env, prompt=asked.append)
+    assert "robot mode IDLE" in asked[0]
+    # the person powers it on: the spilled stick and a failing move home still need them
+    robot.robot_mode = 7
+    env.spilled = True
+    robot.q = HOME_Q + 0.3
+    backend.home_timeout = 0.5  # a slow move that cannot arrive in time
+    asked.clear()
     with pytest.raises(RuntimeError, match="did not reach home"):
         console_manual_reset(env, prompt=asked.append, attempts=2)
     assert "stick is spilled" in asked[0] and "could not reach home" in asked[1]
-    control.reach_home = True
+    backend.home_timeout = 30.0
     asked.clear()
     console_manual_reset(env, prompt=asked.append)
     assert "stick is spilled" in asked[0] and len(asked) == 1
+    np.testing.assert_allclose(robot.q, HOME_Q, atol=backend.home_tolerance)
 
 
 # ---------------------------------------------------------------------------------------------- rtde loopback
@@ -463,8 +439,10 @@ def test_rtde_receive_side_against_a_fake_rtde_server_in_another_process(tmp_pat
         assert server.stdout.readline().strip() == "ready", server.stderr.read()
         variables = ["timestamp", "actual_q", "actual_qd", "robot_mode", "safety_mode", "safety_status_bits",
                      "robot_status_bits", "runtime_state"]
-        backend = RTDEBackend(host, control_factory=lambda h: FakeRTDEControl(h),
-                              receive_factory=lambda h: rtde_receive.RTDEReceiveInterface(h, 125.0, variables))
+        robot = FakeURController(time.monotonic)  # the control and dashboard side
+        backend = RTDEBackend(host, control_factory=robot.control, dashboard_factory=robot.dashboard,
+                              receive_factory=lambda h: rtde_receive.RTDEReceiveInterface(h, 125.0, variables),
+                              host_watchdog=False)
         backend.connect()
         time.sleep(0.1)
         state = backend.read_state()
