@@ -3,6 +3,7 @@
     python recipes/train.py task=peg_insertion_insert algo=ours seed=0            # the paper's settings
     python recipes/train.py task=cliff_cheetah algo=lnt preset=quick              # a short CPU run
     python recipes/train.py task=cliff_cheetah algo=lnt preset=quick resume=true  # continue a killed run
+    python recipes/train.py -m task=peg_insertion_insert algo=ours,lnt,lnt_sparse seed=0,1,2  # a grid, in parallel
 
 Tasks: cliff_cheetah, cliff_walker, peg_insertion_insert, peg_insertion_remove, ball_in_cup_catch,
 ball_in_cup_throw. Everything lands in ``run_dir`` (default ``runs/<task>/<algo>/seed<seed>``):
@@ -49,7 +50,11 @@ from train_utils import (  # noqa: E402
     realtime_env,
     reset_horizon,
     retain_freed_memory,
+    code_version,
     safety_counters,
+    should_resume,
+    success_rate_by_quarter,
+    torch_threads,
     task_dimensions,
     UpdateBudget,
     validate,
@@ -92,7 +97,7 @@ def train(cfg: DictConfig) -> dict:
     validate(cfg)
     run_dir = Path(cfg.run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
-    torch.set_num_threads(int(cfg.threads))
+    torch.set_num_threads(torch_threads(cfg))
     if cfg.speed.retain_memory:
         retain_freed_memory()
     # a setting of CPU products: with the networks on another device it changes nothing
@@ -156,7 +161,7 @@ def train(cfg: DictConfig) -> dict:
         meta = {"task": cfg.task.name, "algo": cfg.algo.name, "seed": int(cfg.seed), "frames": collector.frames}
         return checkpoints.save(collector.frames, write_checkpoint, meta)
 
-    if cfg.resume:
+    if should_resume(cfg):
         folder = checkpoints.latest()
         state = torch.load(folder / "state.pt", weights_only=False)
         forward.loss.load_state_dict(state["forward_loss"])
@@ -176,6 +181,9 @@ def train(cfg: DictConfig) -> dict:
         log.info("resumed from %s at step %d", folder, collector.frames)
     else:
         (run_dir / "config.yaml").write_text(OmegaConf.to_yaml(cfg, resolve=True))
+    # the code each stretch of the run ran at (a resumed run appends its own line)
+    with open(run_dir / "code.jsonl", "a") as f:
+        f.write(json.dumps({"from_step": collector.frames, **code_version()}) + "\n")
 
     loggers = make_loggers(cfg, run_dir)
     h_f, h_r = int(cfg.task.forward_horizon), reset_horizon(cfg)
@@ -312,8 +320,12 @@ def train(cfg: DictConfig) -> dict:
         "steps": collector.frames, "finished": collector.frames >= int(cfg.total_steps) and not interrupted,
         "average_return": float(np.mean(history["eval_returns"])) if history["eval_returns"] else None,
         "manual_resets": collector.counters["manual_resets"],
+        # an episodic agent needs one reset per forward episode (the release logs it as the baseline)
+        "episodic_resets": collector.counters["forward_episodes"],
+        "resets_saved": collector.counters["forward_episodes"] - collector.counters["manual_resets"],
         "forward_share": collector.forward_share,
         "reset_success_rate": collector.reset_success_rate,
+        **success_rate_by_quarter(progress.path),
         "final_eval_return": history["eval_returns"][-1] if history["eval_returns"] else None,
         "evaluations": len(history["eval_returns"]),
         **{k: collector.counters[k] for k in ("triggered_resets", "requested_resets", "successful_resets", "reset_episodes")},
@@ -324,7 +336,7 @@ def train(cfg: DictConfig) -> dict:
         "seconds": round(history["elapsed"], 1),
         "steps_per_second": round(collector.frames / max(history["elapsed"], 1e-9), 1),
         "step_seconds": {name: (total / count if count else None) for name, (total, count) in step_time.items()},
-        "device": str(cfg.device), "matmul_precision": matmul_precision,
+        "device": str(cfg.device), "matmul_precision": matmul_precision, **code_version(),
         "torch": torch.__version__, "torchrl": torchrl.__version__,
     }
     (run_dir / "summary.json").write_text(json.dumps(summary, indent=2, default=_json_default))
@@ -371,7 +383,19 @@ def main(cfg: DictConfig) -> None:
     width = max(map(len, summary))
     for key, value in summary.items():
         print(f"{key:<{width}}  {value:.4g}" if isinstance(value, float) else f"{key:<{width}}  {value}")
+    print(_in_words(summary))
     print(f"results in {cfg.run_dir}")
+
+
+def _in_words(summary: dict) -> str:
+    """The run's effect in one sentence: resets saved against an episodic agent, and the success trend."""
+    def pct(value):
+        return "n/a" if value is None or (isinstance(value, float) and math.isnan(value)) else f"{100 * value:.0f}%"
+
+    return (f"{summary['manual_resets']} manual resets where an episodic agent would have needed "
+            f"{summary['episodic_resets']} ({summary['resets_saved']} saved); reset success rate "
+            f"{pct(summary['reset_success_rate_first_quarter'])} in the first quarter of the run, "
+            f"{pct(summary['reset_success_rate_last_quarter'])} in the last.")
 
 
 if __name__ == "__main__":

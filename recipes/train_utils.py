@@ -84,7 +84,9 @@ def validate(cfg: DictConfig) -> None:
         raise ConfigError("invalid configuration:\n  - " + "\n  - ".join(problems))
     checkpoints = Checkpoints(Path(cfg.run_dir) / "checkpoints", keep=int(cfg.keep_checkpoints))
     latest = checkpoints.latest()
-    if cfg.resume:
+    if cfg.resume not in (True, False, "auto"):
+        raise ConfigError(f"resume must be true, false or auto, got {cfg.resume!r}")
+    if should_resume(cfg):
         if latest is None:
             raise ConfigError(f"resume=true but {checkpoints.root} holds no complete checkpoint to resume from.")
         meta = json.loads((latest / "meta.json").read_text())
@@ -99,6 +101,48 @@ def validate(cfg: DictConfig) -> None:
             f"{cfg.run_dir} already holds a checkpoint ({latest.name}); pass resume=true to continue it, or "
             "choose another run_dir."
         )
+    threads = cfg.threads
+    if threads != "auto" and not (isinstance(threads, int) and threads >= 1):
+        raise ConfigError(f"threads must be a positive integer or auto, got {threads!r}")
+
+
+def code_version() -> dict:
+    """The commit the code runs at and whether the work tree differs from it (None outside a git checkout)."""
+    import subprocess
+
+    root = Path(__file__).resolve().parents[1]
+    try:
+        commit = subprocess.run(["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True, text=True,
+                                timeout=10, check=True).stdout.strip()
+        status = subprocess.run(["git", "-C", str(root), "status", "--porcelain", "--untracked-files=no"],
+                                capture_output=True, text=True, timeout=10, check=True).stdout.strip()
+    except (OSError, subprocess.SubprocessError):
+        return {"commit": None, "modified": None}
+    return {"commit": commit, "modified": bool(status)}
+
+
+def should_resume(cfg: DictConfig) -> bool:
+    """``resume``: true, false, or auto (continue from the run folder's checkpoint when it has one:
+    launching the same grid again continues every run where it stopped)."""
+    if cfg.resume == "auto":
+        return Checkpoints(Path(cfg.run_dir) / "checkpoints").latest() is not None
+    return bool(cfg.resume)
+
+
+def torch_threads(cfg: DictConfig) -> int:
+    """``threads``: a number, or auto: one per run in a Hydra multirun (runs go in parallel, one per
+    core), else up to two."""
+    if cfg.threads != "auto":
+        return int(cfg.threads)
+    try:
+        from hydra.core.hydra_config import HydraConfig
+        from hydra.types import RunMode
+
+        if HydraConfig.initialized() and HydraConfig.get().mode == RunMode.MULTIRUN:
+            return 1
+    except (ImportError, ValueError):
+        pass
+    return max(1, min(2, os.cpu_count() or 1))
 
 
 # ------------------------------------------------------------------------------------------ agents
@@ -536,6 +580,32 @@ def _fsync_tree(root: Path) -> None:
 
 
 # ------------------------------------------------------------------------------------------ logs
+def success_rate_by_quarter(progress: Path) -> dict:
+    """The reset success rate within the first and the last quarter of a run's steps, from ``progress.csv``
+    (the cumulative counters at the log rows): whether the reset agent got better."""
+    out = {"reset_success_rate_first_quarter": None, "reset_success_rate_last_quarter": None}
+    if not Path(progress).exists():
+        return out
+    with open(progress, newline="") as f:
+        rows = [(int(float(r["frames"])), int(r["successful_resets"]), int(r["manual_resets"])) for r in csv.DictReader(f)]
+    if len(rows) < 4:
+        return out
+    total = rows[-1][0]
+
+    def at(frames: int) -> tuple[int, int]:
+        before = [r for r in rows if r[0] <= frames]
+        return (before[-1][1], before[-1][2]) if before else (0, 0)
+
+    def rate(start: tuple[int, int], end: tuple[int, int]):
+        ended = (end[0] - start[0]) + (end[1] - start[1])
+        return (end[0] - start[0]) / ended if ended else None
+
+    out["reset_success_rate_first_quarter"] = rate((0, 0), at(total // 4))
+    out["reset_success_rate_last_quarter"] = rate(at(total - total // 4), at(total))
+    return out
+
+
+
 class CsvTable:
     """An append-only CSV file with a fixed header; on resume, rows after the checkpoint are dropped."""
 
