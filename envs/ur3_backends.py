@@ -460,7 +460,7 @@ class RTDEBackend(UR3Backend):
 
     # --------------------------------------------------------------- motion
     def speedj(self, qd: np.ndarray, acceleration: float | None = None) -> np.ndarray:
-        state = self._last_state or self.read_state()
+        state = self.read_state()  # fresh: the filter must see where the arm is now, not before the update
         if state.halted:
             self._last_command = self._clock()
             return np.zeros(6)  # the controller refuses commands now; the env ends the episode
@@ -594,7 +594,6 @@ class RTDEBackend(UR3Backend):
         remaining = t - self._clock()
         if remaining > 0:
             self._sleep(remaining)
-        self._last_state = None  # the next command reads a fresh state
 
 
 def cup_axis_tilt(q: np.ndarray) -> float:

@@ -2,6 +2,7 @@
 
     python recipes/report.py runs/                      # every run under runs/
     python recipes/report.py runs/cliff_cheetah --out report/
+    python recipes/report.py runs/ --budget 100000        # every run as it stood at 100k steps
 
 Reads every folder holding a ``summary.json`` written by ``train.py`` (any mix of tasks, algorithms,
 seeds and p_thresh values) and writes into ``--out`` (default ``<first folder>/report``):
@@ -59,16 +60,22 @@ COLORS = {"ours": "tab:red", "lnt": "tab:blue", "lnt_sparse": "tab:green"}
 
 
 class Run:
-    """One run folder: its summary, config and logged tables."""
+    """One run folder: its summary, config and logged tables; with ``budget``, everything as it stood
+    at that many steps (the counters of the last ``progress.csv`` row at or before it, the
+    evaluations up to it), so that runs that went on longer are compared at the same budget."""
 
-    def __init__(self, folder: Path):
+    def __init__(self, folder: Path, budget: int | None = None):
         self.folder = folder
+        self.budget = budget
         self.summary = json.loads((folder / "summary.json").read_text())
         for key in ("task", "algo", "seed", *METRICS):
             if key not in self.summary:
                 raise ValueError(f"{folder / 'summary.json'} has no {key!r}: not written by train.py?")
         self.task, self.algo = self.summary["task"], self.summary["algo"]
         self.p_thresh = self.summary.get("p_thresh")
+        if budget is not None:
+            self.summary = {**self.summary, **self._at_budget(budget)}
+        self.summary.update(self._resets_saved())
 
     def table(self, name: str) -> dict[str, np.ndarray]:
         path = self.folder / name
@@ -78,7 +85,46 @@ class Run:
             rows = list(csv.DictReader(f))
         if not rows:
             return {}
-        return {key: np.array([_float(row[key]) for row in rows]) for key in rows[0] if key != "observation"}
+        data = {key: np.array([_float(row[key]) for row in rows]) for key in rows[0] if key != "observation"}
+        if self.budget is not None and "frames" in data:
+            keep = data["frames"] <= self.budget
+            data = {key: values[keep] for key, values in data.items()}
+        return data
+
+    def _at_budget(self, budget: int) -> dict:
+        progress = self.table("progress.csv")
+        if not len(progress.get("frames", [])):
+            raise ValueError(f"{self.folder}: no progress.csv row at or before step {budget}.")
+        last = {key: values[-1] for key, values in progress.items()}
+        out = {"steps": int(last["frames"])}
+        if "manual_resets" in last:
+            out["manual_resets"] = int(last["manual_resets"])
+        if "forward_steps" in last and "reset_steps" in last:
+            out["forward_share"] = float(last["forward_steps"] / max(last["forward_steps"] + last["reset_steps"], 1))
+        if "successful_resets" in last and "manual_resets" in last:
+            ended = last["successful_resets"] + last["manual_resets"]
+            out["reset_success_rate"] = float(last["successful_resets"] / ended) if ended else math.nan
+        returns = self.table("eval.csv").get("forward_return", np.zeros(0))
+        out["average_return"] = float(np.mean(returns)) if len(returns) else math.nan
+        return out
+
+    def _resets_saved(self) -> dict:
+        """Resets an episodic agent would have needed (one per forward episode) and the manual resets
+        per 1000 steps over the last quarter of the (budgeted) run."""
+        progress = self.table("progress.csv")
+        out = {"episodic_resets": math.nan, "late_manual_rate": math.nan}
+        frames = progress.get("frames", np.zeros(0))
+        if not len(frames):
+            return out
+        if "forward_episodes" in progress:
+            out["episodic_resets"] = float(progress["forward_episodes"][-1])
+        if "manual_resets" in progress and len(frames) >= 2:
+            end = frames[-1]
+            start = int(np.searchsorted(frames, end - end / 4, side="right")) - 1
+            if start >= 0 and end > frames[start]:
+                manual = progress["manual_resets"]
+                out["late_manual_rate"] = float(1000 * (manual[-1] - manual[start]) / (end - frames[start]))
+        return out
 
 
 def _float(value: str) -> float:
@@ -88,11 +134,11 @@ def _float(value: str) -> float:
         return {"True": 1.0, "False": 0.0}.get(value, math.nan)
 
 
-def find_runs(paths: list[Path]) -> list[Run]:
+def find_runs(paths: list[Path], budget: int | None = None) -> list[Run]:
     folders = sorted({p.parent for path in paths for p in ([path] if path.is_file() else path.rglob("summary.json"))})
     if not folders:
         raise SystemExit(f"no summary.json under {', '.join(map(str, paths))}: nothing to report.")
-    return [Run(folder) for folder in folders]
+    return [Run(folder, budget) for folder in folders]
 
 
 def _mean_std(values: list[float]) -> tuple[float, float]:
@@ -141,7 +187,30 @@ def table1(runs: list[Run]) -> str:
             f"| {TASK_TITLES.get(task, task)} | {ALGO_TITLES.get(algo, algo)} | {p_thresh} | {len(members)} | "
             f"{'/'.join(map(str, steps))} | " + " | ".join(cells) + " |"
         )
-    return "\n".join(lines) + "\n\nMean ± standard deviation over seeds; the paper's numbers are 1.5M-step means of 5 seeds.\n"
+    budget = {r.budget for r in runs} - {None}
+    note = f" at a budget of {budget.pop()} steps" if budget else ""
+    lines += [
+        "",
+        f"Mean ± standard deviation over seeds{note}; the paper's numbers are 1.5M-step means of 5 seeds.",
+        "",
+        "| task | algo | p_thresh | seeds | manual resets | episodic resets | saved | manual resets per 1k steps, last quarter |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for (task, algo, p_thresh), members in sorted(
+        groups.items(), key=lambda kv: (order.index(kv[0][0]) if kv[0][0] in order else 99, kv[0][1], kv[0][2] or 0)
+    ):
+        manual = _mean_std([r.summary["manual_resets"] for r in members])
+        episodic = _mean_std([r.summary["episodic_resets"] for r in members])
+        saved = _mean_std([r.summary["episodic_resets"] - r.summary["manual_resets"] for r in members])
+        late = _mean_std([r.summary["late_manual_rate"] for r in members])
+        lines.append(
+            f"| {TASK_TITLES.get(task, task)} | {ALGO_TITLES.get(algo, algo)} | {p_thresh} | {len(members)} | "
+            f"{_cell(*manual, 'count')} | {_cell(*episodic, 'count')} | {_cell(*saved, 'count')} | {_cell(*late, 'return')} |"
+        )
+    return "\n".join(lines) + (
+        "\n\nEpisodic resets: the resets an agent without a reset agent would have needed, one per forward "
+        "episode (the authors' release logs it as the baseline).\n"
+    )
 
 
 def _curves(members: list[Run], table: str, column: str):
@@ -246,8 +315,8 @@ def _curriculum_label(run: Run) -> str:
     return "observation entry before the trigger"
 
 
-def report(paths: list[Path], out: Path | None = None) -> dict[str, list[Path]]:
-    runs = find_runs(paths)
+def report(paths: list[Path], out: Path | None = None, budget: int | None = None) -> dict[str, list[Path]]:
+    runs = find_runs(paths, budget)
     out = Path(out) if out is not None else (paths[0] if paths[0].is_dir() else paths[0].parent) / "report"
     out.mkdir(parents=True, exist_ok=True)
     table_path = out / "table1.md"
@@ -259,8 +328,12 @@ def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("paths", nargs="+", type=Path, help="run folders, or folders holding run folders")
     parser.add_argument("--out", type=Path, default=None, help="where to write (default: <first path>/report)")
+    parser.add_argument("--budget", type=int, default=None,
+                        help="compare every run as it stood at this many steps (default: at its end)")
     args = parser.parse_args(argv)
-    written = report(args.paths, args.out)
+    if args.budget is not None and args.budget < 1:
+        parser.error(f"--budget must be a positive number of steps, got {args.budget}")
+    written = report(args.paths, args.out, args.budget)
     print(Path(written["table"][0]).read_text())
     for kind in ("fig3", "fig4", "fig5"):
         for path in written[kind]:

@@ -65,3 +65,27 @@ def test_report_without_runs_and_with_a_foreign_summary(tmp_path):
     (tmp_path / "x" / "summary.json").write_text(json.dumps({"task": "t"}))
     with pytest.raises(ValueError, match="not written by train.py"):
         report.report([tmp_path])
+
+
+def test_a_budget_compares_runs_as_they_stood_at_that_step(tmp_path):
+    folder = tmp_path / "runs" / "peg_insertion_insert" / "ours" / "seed0"
+    folder.mkdir(parents=True)
+    summary = {"task": "peg_insertion_insert", "algo": "ours", "seed": 0, "p_thresh": 0.1, "steps": 4000,
+               "average_return": 9.0, "manual_resets": 99, "forward_share": 0.9, "reset_success_rate": 0.9}
+    (folder / "summary.json").write_text(json.dumps(summary))
+    header = ["frames", "forward_steps", "reset_steps", "forward_episodes", "successful_resets", "manual_resets"]
+    rows = [(1000, 300, 700, 3, 0, 3), (2000, 800, 1200, 8, 2, 5), (3000, 1500, 1500, 15, 6, 7),
+            (4000, 2400, 1600, 24, 14, 8)]
+    with open(folder / "progress.csv", "w", newline="") as f:
+        csv.writer(f).writerows([header, *rows])
+    with open(folder / "eval.csv", "w", newline="") as f:
+        csv.writer(f).writerows([["frames", "forward_return"], [1000, 1.0], [2000, 2.0], [3000, 6.0], [4000, 30.0]])
+    report.report([tmp_path / "runs"], tmp_path / "out", budget=3000)
+    table = (tmp_path / "out" / "table1.md").read_text()
+    # at 3000 steps: return mean(1, 2, 6) = 3.00; manual 7; share 1500 / 3000 = 50.0%; success 6 / 13 = 46.2%
+    assert "| peg-insertion (insert) | ours | 0.1 | 1 | 3000 | 3.00 ± 0.00 (paper 29.20) | 7 ± 0 (paper 343) | " \
+           "50.0% ± 0.0 (paper 66.3%) | 46.2% ± 0.0 (paper 96.6%) |" in table
+    # 15 forward episodes, 15 - 7 = 8 saved; last quarter of 3000 steps from the row at 2000 (the last at or
+    # before 2250): (7 - 5) manual resets in 1000 steps = 2.00 per 1k
+    assert "| peg-insertion (insert) | ours | 0.1 | 1 | 7 ± 0 | 15 ± 0 | 8 ± 0 | 2.00 ± 0.00 |" in table
+    assert "at a budget of 3000 steps" in table
