@@ -11,7 +11,9 @@ seeds and p_thresh values) and writes into ``--out`` (default ``<first folder>/r
   forward return, manual resets, forward share and reset success rate, beside the paper's numbers;
 - ``fig3_<task>.png``: evaluation forward return and cumulative manual resets against steps;
 - ``fig4_<task>_<algo>.png``: the same four metrics against p_thresh (when runs differ in p_thresh);
-- ``fig5_<task>_<algo>.png``: the curriculum, the state just before each triggered reset against steps.
+- ``fig5_<task>_<algo>.png``: the curriculum, the state just before each triggered reset against steps;
+- ``diagnostics_<task>_<algo>.png``: the trigger's scores, the reset model on examples, replay and forward
+  states, the reset success rate along the run and how far reset episodes ended from the start.
 """
 from __future__ import annotations
 
@@ -67,7 +69,15 @@ class Run:
     def __init__(self, folder: Path, budget: int | None = None):
         self.folder = folder
         self.budget = budget
-        self.summary = json.loads((folder / "summary.json").read_text())
+        if (folder / "summary.json").exists():
+            self.summary = json.loads((folder / "summary.json").read_text())
+        else:  # a run still going (or killed): read as it stands from its config and logs
+            from omegaconf import OmegaConf
+
+            cfg = OmegaConf.load(folder / "config.yaml")
+            self.summary = {"task": cfg.task.name, "algo": cfg.algo.name, "seed": int(cfg.seed),
+                            "p_thresh": float(cfg.task.p_thresh), "finished": False}
+            self.summary.update(self._at_budget(budget if budget is not None else 2**62))
         for key in ("task", "algo", "seed", *METRICS):
             if key not in self.summary:
                 raise ValueError(f"{folder / 'summary.json'} has no {key!r}: not written by train.py?")
@@ -135,7 +145,15 @@ def _float(value: str) -> float:
 
 
 def find_runs(paths: list[Path], budget: int | None = None) -> list[Run]:
-    folders = sorted({p.parent for path in paths for p in ([path] if path.is_file() else path.rglob("summary.json"))})
+    """Run folders: those with a ``summary.json``, and runs still going (``config.yaml`` and ``progress.csv``)."""
+    folders = set()
+    for path in paths:
+        if path.is_file():
+            folders.add(path.parent)
+            continue
+        folders |= {p.parent for p in path.rglob("summary.json")}
+        folders |= {p.parent for p in path.rglob("progress.csv") if (p.parent / "config.yaml").exists()}
+    folders = sorted(folders)
     if not folders:
         raise SystemExit(f"no summary.json under {', '.join(map(str, paths))}: nothing to report.")
     return [Run(folder, budget) for folder in folders]
@@ -304,6 +322,57 @@ def figure5(runs: list[Run], out: Path) -> list[Path]:
     return written
 
 
+def figure_diagnostics(runs: list[Run], out: Path) -> list[Path]:
+    """What explains a run (``diagnostics.csv``, ``resets.csv``, ``progress.csv``), one figure per task and algo:
+    the trigger's score on executed forward steps against its threshold, the reset model on examples, reset
+    replay and forward replay, the reset success rate per stretch of the run, and how far each reset episode
+    ended from the start."""
+    written = []
+    for (task, algo), members in _by(runs, "task", "algo").items():
+        tables = [(run, run.table("diagnostics.csv")) for run in members]
+        tables = [(run, t) for run, t in tables if "frames" in t]
+        if not tables:
+            continue
+        ours = algo == "ours"
+        fig, axes = plt.subplots(1, 4, figsize=(18, 3.8))
+        threshold = members[0].p_thresh if ours else None
+        for run, t in tables:
+            seed = run.summary["seed"]
+            axes[0].plot(t["frames"], t["trigger_score_mean"], label=f"seed {seed}: mean")
+            axes[0].plot(t["frames"], t["trigger_score_min"], ls=":", label=f"seed {seed}: min")
+            for column, style in (("example_p", "-"), ("reset_replay_p", "--"), ("forward_p", "-."),
+                                  ("forward_p_min_member", ":")):
+                if column in t:
+                    axes[1].plot(t["frames"], t[column], ls=style, label=f"seed {seed}: {column.replace('_', ' ')}")
+            progress = run.table("progress.csv")
+            if "successful_resets" in progress and len(progress["frames"]) > 1:
+                success = np.diff(progress["successful_resets"], prepend=0)
+                manual = np.diff(progress["manual_resets"], prepend=0)
+                window = max(1, len(success) // 20)
+                kernel = np.ones(window)
+                rate = np.convolve(success, kernel, "same") / np.maximum(np.convolve(success + manual, kernel, "same"), 1)
+                axes[2].plot(progress["frames"], rate, label=f"seed {seed}")
+            resets = run.table("resets.csv")
+            if "distance_to_start" in resets:
+                axes[3].scatter(resets["frames"], resets["distance_to_start"], s=5, alpha=0.5, label=f"seed {seed}")
+        if threshold is not None:
+            for ax in axes[:2]:
+                ax.axhline(threshold, color="k", lw=0.8, ls="--", label="p_thresh")
+        axes[0].set(title="trigger score on executed forward steps", xlabel="steps",
+                    ylabel="ensemble-mean p" if ours else "ensemble-min reset Q")
+        axes[1].set(title="reset model: examples, reset replay, forward replay", xlabel="steps",
+                    ylabel="ensemble-mean p" if ours else "ensemble-min reset Q")
+        axes[2].set(title="reset success rate per stretch", xlabel="steps", ylabel="successful / ended", ylim=(-0.02, 1.02))
+        axes[3].set(title="end of each reset episode: distance to the start", xlabel="steps",
+                    ylabel="observation distance")
+        for ax in axes:
+            ax.grid(alpha=0.3)
+            ax.legend(fontsize=6)
+        fig.suptitle(f"{TASK_TITLES.get(task, task)}, {ALGO_TITLES.get(algo, algo)}: diagnostics")
+        _save(fig, out / f"diagnostics_{task}_{algo}.png", written)
+    return written
+
+
 def _curriculum_label(run: Run) -> str:
     config = run.folder / "config.yaml"
     if config.exists():
@@ -321,7 +390,8 @@ def report(paths: list[Path], out: Path | None = None, budget: int | None = None
     out.mkdir(parents=True, exist_ok=True)
     table_path = out / "table1.md"
     table_path.write_text(table1(runs))
-    return {"table": [table_path], "fig3": figure3(runs, out), "fig4": figure4(runs, out), "fig5": figure5(runs, out)}
+    return {"table": [table_path], "fig3": figure3(runs, out), "fig4": figure4(runs, out), "fig5": figure5(runs, out),
+            "diagnostics": figure_diagnostics(runs, out)}
 
 
 def main(argv=None) -> None:
@@ -335,7 +405,7 @@ def main(argv=None) -> None:
         parser.error(f"--budget must be a positive number of steps, got {args.budget}")
     written = report(args.paths, args.out, args.budget)
     print(Path(written["table"][0]).read_text())
-    for kind in ("fig3", "fig4", "fig5"):
+    for kind in ("fig3", "fig4", "fig5", "diagnostics"):
         for path in written[kind]:
             print(f"wrote {path}")
 

@@ -309,3 +309,27 @@ def test_video_plays_the_evaluation_of_the_latest_checkpoint_into_a_gif(tmp_path
     assert np.abs(frames[1][8:-8, 8:-8, :3].astype(int) - frames[-1][8:-8, 8:-8, :3].astype(int)).sum() > 0
     with pytest.raises(FileNotFoundError, match="config.yaml"):
         video.record(tmp_path / "nothing")
+
+
+def test_diagnostics_score_every_forward_step_and_resets_csv_has_every_reset_episode(tmp_path):
+    train.train(config(tmp_path, "task=peg_insertion_insert", "algo=ours", "total_steps=400"))
+    progress = rows(tmp_path / "progress.csv")[-1]
+    diagnostics = rows(tmp_path / "diagnostics.csv")
+    assert [int(r["frames"]) for r in diagnostics] == list(range(50, 401, 50))
+    # the trigger scores every executed forward step: their count adds up to the forward steps
+    assert sum(int(r["trigger_scored_steps"]) for r in diagnostics) == int(progress["forward_steps"])
+    for r in diagnostics:
+        for column in ("trigger_score_mean", "example_p", "reset_replay_p", "forward_p"):
+            if r[column] not in ("", "nan"):
+                assert 0.0 <= float(r[column]) <= 1.0  # success probabilities
+        if r["trigger_score_min"] not in ("", "nan"):
+            assert float(r["trigger_score_min"]) <= float(r["trigger_score_mean"])
+    resets = rows(tmp_path / "resets.csv")
+    outcomes = [r["outcome"] for r in resets]
+    assert len(resets) == int(progress["reset_episodes"])
+    assert outcomes.count("success") == int(progress["successful_resets"])
+    assert outcomes.count("manual") == int(progress["manual_resets"])
+    assert all(float(r["distance_to_examples"]) <= float(r["distance_to_start"]) + 1e-6 for r in resets)
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert summary["episodic_resets"] == int(progress["forward_episodes"])
+    assert summary["resets_saved"] == summary["episodic_resets"] - summary["manual_resets"]

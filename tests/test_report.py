@@ -35,7 +35,13 @@ def fabricate(root: Path, task, algo, seed, p_thresh, avg_return, manual, share,
 
 def test_table1_and_figures_from_fabricated_runs(tmp_path):
     runs = tmp_path / "runs"
-    fabricate(runs, "cliff_cheetah", "ours", 0, 0.05, 2.0, 10, 0.3, 0.9)
+    folder = fabricate(runs, "cliff_cheetah", "ours", 0, 0.05, 2.0, 10, 0.3, 0.9)
+    with open(folder / "diagnostics.csv", "w", newline="") as f:
+        csv.writer(f).writerows([["frames", "trigger_score_mean", "trigger_score_min", "example_p", "forward_p"],
+                                 [500, 0.8, 0.5, 0.99, 0.6], [1000, 0.4, 0.05, 0.98, 0.3]])
+    with open(folder / "resets.csv", "w", newline="") as f:
+        csv.writer(f).writerows([["frames", "outcome", "steps", "distance_to_start", "distance_to_examples"],
+                                 [300, "manual", 200, 2.0, 1.5], [900, "success", 20, 0.1, 0.0]])
     fabricate(runs, "cliff_cheetah", "ours", 1, 0.05, 4.0, 30, 0.5, 1.0)
     fabricate(runs, "cliff_cheetah", "ours", 0, 0.2, 1.0, 5, 0.1, 0.5)
     fabricate(runs, "cliff_cheetah", "lnt", 0, 0.05, 5.0, 100, 0.2, 0.8)
@@ -49,6 +55,7 @@ def test_table1_and_figures_from_fabricated_runs(tmp_path):
     assert "| cliff-cheetah | ours | 0.2 | 1 |" in table
     names = {kind: [p.name for p in paths] for kind, paths in written.items()}
     assert names["fig3"] == ["fig3_cliff_cheetah.png"]
+    assert names["diagnostics"] == ["diagnostics_cliff_cheetah_ours.png"]  # only that run logged diagnostics
     assert names["fig4"] == ["fig4_cliff_cheetah_ours.png"]  # only ours has two p_thresh values
     assert sorted(names["fig5"]) == ["fig5_cliff_cheetah_lnt.png", "fig5_cliff_cheetah_ours.png"]
     for paths in written.values():
@@ -89,3 +96,17 @@ def test_a_budget_compares_runs_as_they_stood_at_that_step(tmp_path):
     # before 2250): (7 - 5) manual resets in 1000 steps = 2.00 per 1k
     assert "| peg-insertion (insert) | ours | 0.1 | 1 | 7 ± 0 | 15 ± 0 | 8 ± 0 | 2.00 ± 0.00 |" in table
     assert "at a budget of 3000 steps" in table
+
+
+def test_a_run_still_going_is_read_from_its_config_and_logs(tmp_path):
+    folder = tmp_path / "runs" / "cliff_cheetah" / "lnt" / "seed2"
+    folder.mkdir(parents=True)
+    (folder / "config.yaml").write_text("seed: 2\ntask: {name: cliff_cheetah, p_thresh: 0.05}\nalgo: {name: lnt}\n")
+    with open(folder / "progress.csv", "w", newline="") as f:
+        csv.writer(f).writerows([["frames", "forward_steps", "reset_steps", "forward_episodes", "successful_resets",
+                                  "manual_resets"], [500, 100, 400, 2, 1, 3], [1000, 250, 750, 5, 3, 4]])
+    run, = report.find_runs([tmp_path / "runs"])
+    # as it stands at 1000 steps: share 250 / 1000, success 3 / 7, no evaluation yet
+    assert run.summary["steps"] == 1000 and run.summary["manual_resets"] == 4 and not run.summary["finished"]
+    assert run.summary["forward_share"] == pytest.approx(0.25) and run.summary["reset_success_rate"] == pytest.approx(3 / 7)
+    assert run.summary["episodic_resets"] == 5
