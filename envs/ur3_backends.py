@@ -199,8 +199,8 @@ class SimBackend(UR3Backend):
     def speedj(self, qd: np.ndarray, acceleration: float) -> np.ndarray:
         qd = np.asarray(qd, dtype=np.float64)
         if self.filter is not None:
-            qd = self.filter(self.data.qpos[self._arm_q].copy(), qd, self.data.qvel[self._arm_q].copy())
             acceleration = min(float(acceleration), self.limits.acceleration)
+            qd = self.filter(self.data.qpos[self._arm_q].copy(), qd, self.data.qvel[self._arm_q].copy(), acceleration)
         self._cmd = np.clip(qd, -VELOCITY_LIMITS, VELOCITY_LIMITS)
         self._acc = float(acceleration)
         return self._cmd.copy()
@@ -312,6 +312,8 @@ class RTDEBackend(UR3Backend):
 
     # --------------------------------------------------------------- connection
     def connect(self) -> None:
+        if self.control is not None and not self._closed:
+            return  # connected already
         control_factory, receive_factory, dashboard_factory = self._factories
         if control_factory is None or receive_factory is None or dashboard_factory is None:
             try:
@@ -381,12 +383,18 @@ class RTDEBackend(UR3Backend):
         if self._clock() - self._last_command <= self.watchdog_timeout():
             return False
         with self._lock:
-            if self._watchdog_stopped:
+            # checked again under the lock: a command may have been sent meanwhile
+            if self._watchdog_stopped or self._clock() - self._last_command <= self.watchdog_timeout():
+                return False
+            idle = self._clock() - self._last_command
+            if not self._safe_stop():
+                # not stopped: try again at the next check, and never feed the controller's watchdog,
+                # which then stops the control script itself
+                log.error("UR3: no command for %.0f ms and speedStop failed.", 1000 * idle)
                 return False
             self._watchdog_stopped = True
             self.watchdog_stops += 1
-        log.warning("UR3: no command for %.0f ms: speedStop.", 1000 * (self._clock() - self._last_command))
-        self._safe_stop()
+        log.warning("UR3: no command for %.0f ms: speedStop.", 1000 * idle)
         return True
 
     def _watch(self) -> None:
@@ -464,8 +472,8 @@ class RTDEBackend(UR3Backend):
         if state.halted:
             self._last_command = self._clock()
             return np.zeros(6)  # the controller refuses commands now; the env ends the episode
-        safe = self.filter(state.q, qd, state.qd)
         acc = self.limits.acceleration if acceleration is None else min(float(acceleration), self.limits.acceleration)
+        safe = self.filter(state.q, qd, state.qd, acc)  # planned with the acceleration actually sent
         with self._lock:
             try:
                 ok = bool(self.control.speedJ(safe.tolist(), acc, self.period)) and bool(self.control.kickWatchdog())
@@ -476,8 +484,15 @@ class RTDEBackend(UR3Backend):
             self._watchdog_stopped = False
         if not ok:
             self.refused_commands += 1
-            if self._read_state().halted:  # it stopped since the last reading: end the episode, not the run
-                return np.zeros(6)
+            # The controller decides from its own state, which the receive stream may show a little
+            # later: watch it for up to stale_after before calling the refusal unexplained.
+            deadline = self._clock() + self.limits.stale_after
+            while True:
+                if self.read_state().halted:  # it stopped since the last reading: end the episode, not the run
+                    return np.zeros(6)
+                if self._clock() >= deadline:
+                    break
+                self._sleep(min(self.period / 4, self.limits.stale_after))
             self._safe_stop()
             raise RobotFault("ur_rtde speedJ returned False: the command was refused (control script not running?).")
         return safe
@@ -542,9 +557,34 @@ class RTDEBackend(UR3Backend):
                 return armed
         return False
 
+    def path_is_safe(self, q_from: np.ndarray, q_to: np.ndarray, samples: int = 50) -> bool:
+        """Whether the straight joint-space path of a ``moveJ`` from ``q_from`` to ``q_to`` stays inside
+        the joint box and keeps the flange inside the Cartesian box (sampled), or at least goes no further
+        out than where it starts (a person may have moved the arm outside)."""
+        lim = self.limits
+        q_from, q_to = np.asarray(q_from, dtype=np.float64), np.asarray(q_to, dtype=np.float64)
+
+        def excess(q):
+            p = flange_pose(q)[0]
+            joint = np.maximum(np.maximum(q - lim.joint_high, lim.joint_low - q), 0.0)
+            cart = np.maximum(np.maximum(p - lim.cartesian_high, lim.cartesian_low - p), 0.0)
+            return np.concatenate([joint, cart])
+
+        allowed = excess(q_from) + 1e-9
+        return all(np.all(excess(q_from + t * (q_to - q_from)) <= allowed) for t in np.linspace(0.0, 1.0, samples))
+
     def move_home(self, q_home: np.ndarray, speed: float = 0.2) -> bool:
-        """Slow asynchronous ``moveJ`` home, kicking the watchdog; True when within ``home_tolerance``."""
+        """Slow asynchronous ``moveJ`` home, kicking the watchdog; True when within ``home_tolerance``.
+
+        ``moveJ`` does not go through the velocity filter, so its path is checked first
+        (:meth:`path_is_safe`); a path that leaves the boxes is not taken (False: a person is asked)."""
         self._safe_stop()
+        start = self.read_state()
+        if start.halted:
+            return False
+        if not self.path_is_safe(start.q, q_home):
+            log.error("UR3: the joint-space path home leaves the safety boxes; not moving.")
+            return False
         with self._lock:
             ok = self.control.moveJ(list(map(float, q_home)), float(speed), 0.5, True)
         if not ok:

@@ -14,9 +14,13 @@ velocity ``v`` sent now, with the arm at ``q`` moving at ``w`` (measured):
 ``H`` is the prediction horizon. One period (``H = dt``) ignores that the arm cannot stop at once:
 braking from ``w`` at ``a`` takes ``max|w| / a`` and, with ``speedj``'s scaled axes, moves every joint
 along a straight line in joint space. With ``H = dt + v_max / a`` (the default; ``v_max`` the
-largest cap) the constraints are an invariant: when they hold for the current motion, commanding
-the current motion reduced by ``a dt`` (and so braking) satisfies them again one period later, so
-the arm can always stop inside the boxes.
+largest cap) the joint-box constraints are an invariant: when they hold for the current motion, the
+braking command (the motion scaled down by ``a dt`` on its leading axis, as ``speedj`` brakes)
+satisfies them again one period later, so the arm can always stop inside the joint box. For the
+Cartesian box the same holds to first order only: the Jacobian changes along the path, and where
+that breaks a bound the filter falls back to zero velocity (below). Only the flange point is
+constrained (not the tool, the elbow or the wrist), and the true kinematics are checked one period
+ahead; the margins absorb the rest, as the closed-loop tests measure.
 
 A face the arm is already beyond (or within the margin of) only forbids moving further out: the
 bounds are relaxed to "not outward", so that zero velocity always meets 1, 3 and 4.
@@ -32,6 +36,7 @@ the braking command is feasible again) and counts it in ``fallbacks``.
 """
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -103,6 +108,12 @@ class SafetyLimits:
             raise ValueError(f"joint_margin must be >= 0 and leave room in the box, got {self.joint_margin}.")
         if self.horizon is not None and self.horizon <= 0:
             raise ValueError(f"horizon must be > 0 (s) or None, got {self.horizon}.")
+        if self.horizon is not None and self.horizon < self.cap.max() / self.acceleration:
+            warnings.warn(
+                f"horizon {self.horizon} s is shorter than the time to brake from the speed cap "
+                f"({self.cap.max() / self.acceleration:.2f} s at {self.acceleration} rad/s^2): the arm may overshoot the boxes.",
+                RuntimeWarning, stacklevel=3,
+            )
         if self.host_watchdog_periods < 0:
             raise ValueError(f"host_watchdog_periods must be >= 0, got {self.host_watchdog_periods}.")
 
@@ -111,11 +122,12 @@ class SafetyLimits:
         """The speed cap of each joint (rad/s)."""
         return self.speed_fraction * VELOCITY_LIMITS
 
-    def horizon_for(self, period: float) -> float:
-        """The prediction horizon used with control period ``period`` (s)."""
+    def horizon_for(self, period: float, acceleration: float | None = None) -> float:
+        """The prediction horizon used with control period ``period`` (s) and ``acceleration``."""
         if self.horizon is not None:
             return float(self.horizon)
-        return float(period + self.cap.max() / self.acceleration)
+        acc = self.acceleration if acceleration is None else float(acceleration)
+        return float(period + self.cap.max() / acc)
 
 
 def flange_jacobian(q: np.ndarray, eps: float = 1e-6) -> np.ndarray:
@@ -124,42 +136,50 @@ def flange_jacobian(q: np.ndarray, eps: float = 1e-6) -> np.ndarray:
     return np.stack(columns, axis=1)
 
 
-def nearest_feasible(u: np.ndarray, G: np.ndarray, h: np.ndarray, start: np.ndarray, *, max_iter: int = 100,
-                     tol: float = 1e-10) -> tuple[np.ndarray, int]:
+def nearest_feasible(u: np.ndarray, G: np.ndarray, h: np.ndarray, start: np.ndarray, *, max_iter: int = 200,
+                     tol: float = 1e-10) -> tuple[np.ndarray, bool]:
     """``argmin ||v - u||^2`` subject to ``G v <= h``, by a primal active-set method from a feasible ``start``.
 
-    Every iterate stays feasible (each step stops at the first constraint it meets), so the result is
-    feasible even if ``max_iter`` cuts the search short. Returns the point and the iterations used.
+    Every iterate stays feasible: each step stops at the first constraint it meets. A constraint joins
+    the working set only when the step moves against it by more than ``tol`` relative to both norms,
+    so the working set stays linearly independent; among ties the lowest index is taken, and the lowest
+    index with a negative multiplier leaves (Bland's rule), which keeps degenerate starts from
+    cycling. Returns the point and whether the optimality conditions were met within ``max_iter``
+    iterations (when not, the point is still feasible, only perhaps not the nearest).
     """
     v = np.array(start, dtype=np.float64)
+    row_norms = np.linalg.norm(G, axis=1)
     working: list[int] = []
-    for iteration in range(1, max_iter + 1):
+    scale = 1.0 + float(np.linalg.norm(u))
+    for _ in range(max_iter):
         gradient = v - u
         if working:
             a = G[working]
-            multipliers = np.linalg.lstsq(a @ a.T, -(a @ gradient), rcond=None)[0]
+            multipliers = np.linalg.lstsq(a.T, -gradient, rcond=None)[0]
             step = -gradient - a.T @ multipliers
         else:
             multipliers = np.zeros(0)
             step = -gradient
-        if np.linalg.norm(step) <= tol * (1.0 + np.linalg.norm(u)):
-            if not len(multipliers) or multipliers.min() >= -tol:
-                return v, iteration  # the KKT conditions hold: the optimum
-            working.pop(int(np.argmin(multipliers)))
+        step_norm = float(np.linalg.norm(step))
+        if step_norm <= tol * scale:
+            negative = [k for k, m in enumerate(multipliers) if m < -tol * scale]
+            if not negative:
+                return v, True  # the KKT conditions hold: the optimum
+            working.pop(min(negative, key=lambda k: working[k]))  # Bland: the lowest constraint index
             continue
         rates = G @ step
-        slack = h - G @ v
+        slack = np.maximum(h - G @ v, 0.0)
         alpha, blocking = 1.0, None
-        for i in np.flatnonzero(rates > tol):
+        for i in np.flatnonzero(rates > tol * row_norms * step_norm):
             if i in working:
                 continue
-            limit = max(slack[i], 0.0) / rates[i]
-            if limit < alpha:
+            limit = slack[i] / rates[i]
+            if limit < alpha - 1e-15:
                 alpha, blocking = limit, int(i)
         v = v + alpha * step
         if blocking is not None:
             working.append(blocking)
-    return v, max_iter
+    return v, False
 
 
 class SafetyFilter:
@@ -167,8 +187,8 @@ class SafetyFilter:
 
     Attributes:
         calls: commands filtered. changed: commands that were not already safe.
-        fallbacks: commands replaced by zero velocity: even the braking command (the current motion
-            reduced by ``a dt``) broke a bound, or the true flange one period ahead left the box.
+        fallbacks: commands replaced by zero velocity: even the braking command broke a bound, the
+            solver's result failed its final check, or the true flange one period ahead left the box.
     """
 
     def __init__(self, limits: SafetyLimits, period: float):
@@ -178,11 +198,12 @@ class SafetyFilter:
         self.period = float(period)
         self.calls = self.changed = self.fallbacks = 0
 
-    def constraints(self, q: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """``G, h`` of the constraint set ``G v <= h`` at joints ``q`` moving at ``w``."""
+    def constraints(self, q: np.ndarray, w: np.ndarray, acceleration: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """``G, h`` of the constraint set ``G v <= h`` at joints ``q`` moving at ``w``, for ``acceleration``."""
         lim = self.limits
-        dt, horizon = self.period, lim.horizon_for(self.period)
-        cap, band = lim.cap, lim.acceleration * dt
+        acc = lim.acceleration if acceleration is None else float(acceleration)
+        dt, horizon = self.period, lim.horizon_for(self.period, acc)
+        cap, band = lim.cap, acc * dt
         # joint box through the horizon, relaxed to "not outward" beyond a face
         joint_high = np.maximum((lim.joint_high - lim.joint_margin - q) / horizon, 0.0)
         joint_low = np.minimum((lim.joint_low + lim.joint_margin - q) / horizon, 0.0)
@@ -197,8 +218,11 @@ class SafetyFilter:
         h = np.concatenate([upper, -lower, cart_high, -cart_low])
         return G, h
 
-    def __call__(self, q: np.ndarray, command: np.ndarray, measured: np.ndarray | None = None) -> np.ndarray:
-        """The safe velocity nearest to ``command`` for the arm at ``q`` moving at ``measured`` (rad/s)."""
+    def __call__(self, q: np.ndarray, command: np.ndarray, measured: np.ndarray | None = None,
+                 acceleration: float | None = None) -> np.ndarray:
+        """The safe velocity nearest to ``command`` for the arm at ``q`` moving at ``measured`` (rad/s),
+        for a ``speedj`` sent with ``acceleration`` (default and upper bound: ``limits.acceleration``;
+        a gentler acceleration brakes less, so the filter plans with the one actually used)."""
         q = np.asarray(q, dtype=np.float64)
         u = np.asarray(command, dtype=np.float64)
         w = np.zeros(6) if measured is None else np.asarray(measured, dtype=np.float64)
@@ -206,23 +230,31 @@ class SafetyFilter:
             raise ValueError(f"q, command and measured must have 6 entries, got {q.shape}, {u.shape}, {w.shape}.")
         if not (np.all(np.isfinite(q)) and np.all(np.isfinite(u)) and np.all(np.isfinite(w))):
             raise ValueError("the safety filter got a non-finite joint angle, command or velocity.")
+        acc = self.limits.acceleration if acceleration is None else min(float(acceleration), self.limits.acceleration)
+        if not acc > 0:
+            raise ValueError(f"acceleration must be > 0, got {acceleration}.")
         self.calls += 1
-        G, h = self.constraints(q, w)
+        G, h = self.constraints(q, w, acc)
         tol = 1e-9
         if np.all(G @ u <= h + tol) and self._true_flange_ok(q, u):
             return u.copy()
         self.changed += 1
-        # the braking command: the current motion reduced by a dt on every axis
-        band = self.limits.acceleration * self.period
-        start = np.clip(w, -self.limits.cap, self.limits.cap)
-        start = start - np.clip(start, -band, band)
-        if np.any(G @ start > h + tol):
+        # the braking command: the current motion scaled down by a dt on its leading axis, which is
+        # what speedj does on its way to rest (every axis in proportion, the direction kept)
+        # (or, failing that, every axis slowed by a dt on its own)
+        w_cap = np.clip(w, -self.limits.cap, self.limits.cap)
+        lead = float(np.max(np.abs(w_cap)))
+        band = acc * self.period
+        candidates = (w_cap * max(0.0, 1.0 - band / lead) if lead > 0 else np.zeros(6),
+                      w_cap - np.clip(w_cap, -band, band))
+        start = next((c for c in candidates if np.all(G @ c <= h + tol)), None)
+        if start is None:
             # Even braking as hard as the acceleration allows breaks a bound (the arm moves faster or
             # closer to a face than the invariant allows): brake (zero velocity at acceleration a).
             self.fallbacks += 1
             return np.zeros(6)
         v, _ = nearest_feasible(u, G, h, start)
-        if not self._true_flange_ok(q, v):
+        if np.any(G @ v > h + tol) or not self._true_flange_ok(q, v):
             self.fallbacks += 1
             return np.zeros(6)
         return v

@@ -495,3 +495,64 @@ def test_sim_simulator_state_restores_the_exact_trajectory():
     env.reset()
     env.set_simulator_state(state)
     torch.testing.assert_close(replay(td), first, rtol=0, atol=0)
+
+
+def test_host_watchdog_that_cannot_stop_the_arm_never_feeds_the_controller_watchdog(rtde, monkeypatch):
+    backend, robot, clock = rtde
+    backend.speedj(np.full(6, 0.02))
+    clock.t += 0.13  # past the host watchdog's 3 periods, before the controller's 0.2 s
+    monkeypatch.setattr(backend.control, "speedStop", lambda a=10.0: False)  # the stop does not go through
+    kicks = robot.names().count("kickWatchdog")
+    assert not backend.check_watchdog() and not backend.check_watchdog()
+    assert robot.names().count("kickWatchdog") == kicks and backend.watchdog_stops == 0
+    clock.t += 0.1  # so the controller's own watchdog stops the control script, as it should
+    assert backend.read_state().reason == "control script not running" and robot.watchdog_trips == 1
+    monkeypatch.undo()
+    assert backend.recover()
+    # with a working stop, the host watchdog stops the arm once and then keeps the controller's watchdog fed
+    backend.speedj(np.zeros(6))
+    clock.t += 0.13
+    assert backend.check_watchdog() and robot.log[-1][1:] == ("speedStop", True)
+    for _ in range(30):  # 0.3 s more, checked every 10 ms as the watchdog thread does
+        clock.t += 0.01
+        assert not backend.check_watchdog() and robot.log[-1][1:] == ("kickWatchdog", True)
+    assert backend.watchdog_stops == 1 and robot.program_running and robot.watchdog_trips == 1
+
+
+def test_the_move_home_is_not_taken_when_its_path_leaves_the_boxes(rtde):
+    backend, robot, clock = rtde
+    limits = backend.limits
+    # a person left the arm outside the joint box on the elbow: a path home that goes no further out is fine
+    start = HOME_Q.copy()
+    start[2] = limits.joint_high[2] + 0.05
+    assert backend.path_is_safe(start, HOME_Q)
+    # a path that swings the shoulder beyond its box on the way is refused, and the arm does not move
+    away = HOME_Q.copy()
+    away[1] = limits.joint_low[1] + 0.01
+    target = HOME_Q.copy()
+    target[1] = limits.joint_high[1] + 0.2
+    assert not backend.path_is_safe(away, target)
+    robot.q = away.copy()
+    clock.t += 0.04
+    moves = robot.names().count("moveJ")
+    assert not backend.move_home(target, speed=0.2) and robot.names().count("moveJ") == moves
+
+
+def test_a_refusal_the_receive_side_explains_a_moment_later_ends_the_episode_not_the_run(rtde, monkeypatch):
+    backend, robot, clock = rtde
+    # the control side refuses first; the protective stop shows on the receive side 20 ms later
+    def refuse_then_stop(*args):
+        robot.protective_stop_at = clock.t + 0.02
+        return False
+
+    monkeypatch.setattr(backend.control, "speedJ", refuse_then_stop)
+    real_sleep = backend._sleep
+
+    def sleep(dt):
+        real_sleep(dt)
+        if clock.t >= getattr(robot, "protective_stop_at", np.inf):
+            robot.protective_stop()
+
+    monkeypatch.setattr(backend, "_sleep", sleep)
+    assert np.all(backend.speedj(np.full(6, 0.02)) == 0.0)  # no exception
+    assert backend.read_state().protective_stop and backend.refused_commands == 1
