@@ -9,7 +9,7 @@ import mujoco
 import numpy as np
 import pytest
 import torch
-from hypothesis import HealthCheck, given, settings
+from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
 from tensordict.nn import TensorDictModule
 
@@ -118,6 +118,31 @@ def test_the_filtered_command_meets_every_constraint_or_is_zero(situation):
         assert np.all(v == 0.0)  # zero velocity: the arm brakes at the fixed acceleration
     else:
         assert violations(q, w, v, limits) == []
+
+
+@st.composite
+def safe_situations(draw):
+    """Commands that are safe with room to spare: faces far away, a command near the current motion."""
+    q = HOME_Q + np.array(draw(st.lists(st.floats(-0.3, 0.3), min_size=6, max_size=6)))
+    w = np.array(draw(st.lists(st.floats(-0.3, 0.3), min_size=6, max_size=6))) * CAP
+    far = st.sampled_from([1.0, 3.0])
+    joint_low = q - np.array(draw(st.lists(far, min_size=6, max_size=6)))
+    joint_high = q + np.array(draw(st.lists(far, min_size=6, max_size=6)))
+    p, _ = KIN(q)
+    cart_low = p - np.array(draw(st.lists(far, min_size=3, max_size=3)))
+    cart_high = p + np.array(draw(st.lists(far, min_size=3, max_size=3)))
+    limits = SafetyLimits(joint_low=joint_low, joint_high=joint_high, cartesian_low=cart_low, cartesian_high=cart_high)
+    u = w + np.array(draw(st.lists(st.floats(-0.9, 0.9), min_size=6, max_size=6))) * ACC * PERIOD
+    return q, w, u, limits
+
+
+@settings(max_examples=200, deadline=None, suppress_health_check=[HealthCheck.too_slow, HealthCheck.filter_too_much])
+@given(safe_situations())
+def test_a_safe_command_passes_unchanged_bit_for_bit(situation):
+    q, w, u, limits = situation
+    assume(violations(q, w, u, limits, tol=-1e-6) == [])  # the test's own check, with MuJoCo's kinematics
+    safety = SafetyFilter(limits, PERIOD)
+    assert np.array_equal(safety(q, u, w), u) and safety.changed == 0
 
 
 @settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.too_slow])
