@@ -269,7 +269,8 @@ class DualCollector(BaseCollector):
             )
 
     def _begin(self, phase: int, td: TensorDictBase) -> None:
-        """Starts an episode of ``phase`` from the state in ``td`` (a root tensordict)."""
+        """Starts an episode of ``phase`` from the state in ``td`` (a root tensordict); a forward
+        episode first saves that state as an example of an initial state (Algorithm 1, line 6)."""
         self._phase = phase
         self._phase_steps = 0
         self._traj_id += 1
@@ -299,78 +300,92 @@ class DualCollector(BaseCollector):
     def _start(self) -> None:
         self._begin(FORWARD, self._manual_reset())
 
+    # Algorithm 1 of the paper, one action per call; "line n" refers to its numbered lines.
     def _step(self) -> tuple[TensorDictBase | None, bool]:
         """Runs one policy action; returns (the executed step or None, whether the episode ended)."""
-        phase = self._phase
+        return self._forward_step() if self._phase == FORWARD else self._reset_step()
+
+    def _act(self, policy) -> TensorDictBase:
+        """``a_t <- pi(s_t)`` (lines 8 and 20), with exploration, then ``env.step``: for a forward action the
+        env's trigger scores it first (lines 9-11) and skips the step when it fires."""
         td = self._td
         td.set(self.init_key, torch.tensor([self._phase_steps == 0], device=td.device))
-        policy = self.forward_policy if phase == FORWARD else self.reset_policy
         with torch.no_grad(), set_exploration_type(self.exploration_type):
             td = policy(td)
-        td = self.env.step(td)
-        next_td = td.get("next")
+        return self.env.step(td)
 
-        if phase == FORWARD and bool(next_td.get(self.trigger_key, torch.zeros(1, dtype=torch.bool)).any()):
-            # Triggered: the action was not executed, no transition to store.
-            self.counters["triggered_resets"] += 1
-            self.counters["forward_episodes"] += 1
-            self._record("triggered", td)
-            self._begin(RESET, self._continue_from(td))
-            return None, True
-
+    def _executed(self, td: TensorDictBase, phase: int) -> TensorDictBase:
+        """Books an executed step and returns it as yielded (phase and episode tags, a truncated flag)."""
         self._phase_steps += 1
         self._frames += 1
+        self.counters[f"{PHASE_NAMES[phase]}_steps"] += 1
         step = td.exclude(*[k for k in td.keys() if isinstance(k, str) and k.startswith("_")])
         step.set(("collector", "phase"), torch.tensor(phase, device=td.device))
         step.set(("collector", "traj_ids"), torch.tensor(self._traj_id, device=td.device))
         if step.get(("next", "truncated"), None) is None:
             # every yielded step carries the flag that marks an episode's last step
-            step.set(("next", "truncated"), torch.zeros_like(next_td.get("done")))
-        terminated = bool(next_td.get("terminated", torch.zeros(1, dtype=torch.bool)).any())
+            step.set(("next", "truncated"), torch.zeros_like(td.get("next").get("done")))
+        return step
 
-        if phase == FORWARD:
-            self.counters["forward_steps"] += 1
-            outcome = None
-            if terminated:
-                outcome = "terminated"
-            elif self._phase_steps >= self.max_forward_steps:
-                # Algorithm 1 scores the next action before it checks "reached H_f": a trigger at
-                # that point is a triggered reset, else the reset is requested.
-                root = self._continue_from(td)
-                outcome = "triggered" if self._would_trigger(root) else "requested"
-            if outcome is None:
-                self._td = self._continue_from(td)
-                return step, False
+    def _forward_step(self) -> tuple[TensorDictBase | None, bool]:
+        """One pass of the forward episode's loop (lines 7-18)."""
+        td = self._act(self.forward_policy)  # lines 8-9
+        next_td = td.get("next")
+        if bool(next_td.get(self.trigger_key, torch.zeros(1, dtype=torch.bool)).any()):
+            # lines 10-11: trigger reset; the action was not executed, no transition to store
+            self.counters["triggered_resets"] += 1
             self.counters["forward_episodes"] += 1
+            self._record("triggered", td)
+            self._begin(RESET, self._continue_from(td))
+            return None, True
+        step = self._executed(td, FORWARD)  # lines 14-16: env.step, store (the caller updates)
+        if bool(next_td.get("terminated", torch.zeros(1, dtype=torch.bool)).any()):
+            # not in the paper (its tasks never terminate): the env ended the episode, e.g. a robot stop
+            self.counters["forward_episodes"] += 1
+            self.counters["terminations"] += 1
             self._mark_end(step)
-            if terminated:
-                self._record(outcome, next_td)
-                self.counters["terminations"] += 1
-                self._begin(FORWARD, self._manual_reset())
-            else:
-                self._record(outcome, root)
-                self.counters[f"{outcome}_resets"] += 1
-                self._begin(RESET, root)
+            self._record("terminated", next_td)
+            self._begin(FORWARD, self._manual_reset())
             return step, True
+        if self._phase_steps < self.max_forward_steps:
+            self._td = self._continue_from(td)
+            return step, False
+        # Lines 10-13 for the next action: the algorithm scores it before it checks "reached max
+        # forward episode steps", so a trigger there is a triggered reset, else the reset is requested.
+        # That action is not executed either way.
+        root = self._continue_from(td)
+        outcome = "triggered" if self._would_trigger(root) else "requested"
+        self.counters["forward_episodes"] += 1
+        self.counters[f"{outcome}_resets"] += 1
+        self._mark_end(step)
+        self._record(outcome, root)
+        self._begin(RESET, root)
+        return step, True
 
-        self.counters["reset_steps"] += 1
+    def _reset_step(self) -> tuple[TensorDictBase | None, bool]:
+        """One pass of the reset episode's loop (lines 19-27), from the state the forward episode ended in."""
+        td = self._act(self.reset_policy)  # lines 20-22
+        next_td = td.get("next")
+        step = self._executed(td, RESET)  # line 23: store (the caller updates)
         at_initial_state = next_td.get(self.reset_success_key, None)
         if at_initial_state is None:
             raise KeyError(
                 f"the env's step output has no {self.reset_success_key!r} entry (the at-initial-state check); "
                 f"got {sorted(map(str, next_td.keys(True, True)))}. Pass reset_success_key=... to DualCollector."
             )
+        terminated = bool(next_td.get("terminated", torch.zeros(1, dtype=torch.bool)).any())
+        # line 19: "at initial state", after at least min_reset_steps steps (the release's rule)
         success = bool(at_initial_state.any()) and self._phase_steps >= self.min_reset_steps
-        if not (success or terminated or self._phase_steps >= self.max_reset_steps):
+        if not (success or terminated or self._phase_steps >= self.max_reset_steps):  # line 21
             self._td = self._continue_from(td)
             return step, False
         self.counters["reset_episodes"] += 1
         self._mark_end(step)
-        if success:
+        if success:  # back at the initial state: the next forward episode starts here (lines 5-6)
             self.counters["successful_resets"] += 1
             self._record("success", next_td)
             self._begin(FORWARD, self._continue_from(td))
-        else:
+        else:  # lines 24-25: manual reset with env.reset() (or the env terminated)
             outcome = "terminated" if terminated else "manual"
             self.counters["terminations" if terminated else "manual_resets"] += 1
             self._record(outcome, next_td)
