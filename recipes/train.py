@@ -20,6 +20,7 @@ import json
 import logging
 import math
 import random
+import signal
 import sys
 import time
 from pathlib import Path
@@ -33,32 +34,19 @@ from tqdm import tqdm
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from train_utils import (  # noqa: E402
-    Checkpoints,
-    buffer_keys,
-    ConfigError,
-    CsvTable,
+from agents import lnt_batch, make_forward_agent, make_reset_agent, with_exploration  # noqa: E402
+from buffers import buffer_keys, make_buffers  # noqa: E402
+from config_checks import ConfigError, reset_horizon, should_resume, torch_threads, validate  # noqa: E402
+from cpu_speed import choose_matmul_precision, matmul_products, retain_freed_memory  # noqa: E402
+from run_files import Checkpoints, CsvTable, code_version, success_rate_by_quarter  # noqa: E402
+from task_envs import (  # noqa: E402
     EVAL_SEED_OFFSET,
-    choose_matmul_precision,
-    evaluate,
-    lnt_batch,
-    make_buffers,
-    make_forward_agent,
-    make_reset_agent,
-    make_task_env,
-    matmul_products,
-    realtime_env,
-    reset_horizon,
-    retain_freed_memory,
-    code_version,
-    safety_counters,
-    should_resume,
-    success_rate_by_quarter,
-    torch_threads,
-    task_dimensions,
     UpdateBudget,
-    validate,
-    with_exploration,
+    evaluate,
+    make_task_env,
+    realtime_env,
+    safety_counters,
+    task_dimensions,
 )
 
 from diagnostics import (  # noqa: E402
@@ -245,6 +233,12 @@ def train(cfg: DictConfig) -> dict:
     start = time.perf_counter() - history["elapsed"]
     interrupted = False
     last = time.perf_counter()
+    # SIGTERM (a cluster's pre-emption, `kill`) ends the run after the current step, with a checkpoint
+    stop_requested: list[int] = []
+    try:
+        previous_handler = signal.signal(signal.SIGTERM, lambda signum, frame: stop_requested.append(signum))
+    except ValueError:  # not the main thread: leave signals alone
+        previous_handler = None
     try:
         for batch in collector:
             batch = batch.to(cfg.device)
@@ -303,6 +297,10 @@ def train(cfg: DictConfig) -> dict:
             if frames % int(cfg.checkpoint_every) == 0:
                 history["elapsed"] = time.perf_counter() - start
                 checkpoint()
+            if stop_requested:
+                interrupted = True
+                log.warning("SIGTERM at step %d: checkpointing", collector.frames)
+                break
     except KeyboardInterrupt:
         interrupted = True
         log.warning("interrupted at step %d: checkpointing", collector.frames)
@@ -313,6 +311,8 @@ def train(cfg: DictConfig) -> dict:
         raise RobotStopped(f"{err} The run is checkpointed in {path}; resume=true continues it.") from err
     finally:
         bar.close()
+        if previous_handler is not None:
+            signal.signal(signal.SIGTERM, previous_handler)
     history["elapsed"] = time.perf_counter() - start
     checkpoint()
     summary = {

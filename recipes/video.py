@@ -23,16 +23,10 @@ from omegaconf import OmegaConf
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from train_utils import (  # noqa: E402
-    EVAL_SEED_OFFSET,
-    Checkpoints,
-    evaluate,
-    make_forward_agent,
-    make_reset_agent,
-    make_task_env,
-    reset_horizon,
-    task_dimensions,
-)
+from agents import make_forward_agent, make_reset_agent  # noqa: E402
+from config_checks import reset_horizon  # noqa: E402
+from run_files import Checkpoints  # noqa: E402
+from task_envs import EVAL_SEED_OFFSET, evaluate, make_task_env, task_dimensions  # noqa: E402
 
 COLOURS = {"forward": (40, 170, 60), "reset": (40, 90, 220), "trigger": (220, 40, 40)}
 

@@ -117,6 +117,30 @@ def test_kill_9_loses_at_most_the_steps_since_the_last_checkpoint(tmp_path):
     assert resumed == [f for f in logged if f <= saved] + [saved + 50, saved + 100]
 
 
+def test_sigterm_ends_the_run_after_its_step_with_a_checkpoint_and_a_summary(tmp_path):
+    # what a cluster sends before it pre-empts a job: the run stops cleanly and resume=true continues it
+    run_dir = tmp_path / "run"
+    args = [sys.executable, str(RECIPES / "train.py"), *TINY, "task=cliff_cheetah", "algo=ours", "total_steps=100000",
+            f"run_dir={run_dir}", "checkpoint_every=100000"]
+    proc = subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env={**os.environ, "RL_WARNINGS": "0"})
+    progress = run_dir / "progress.csv"
+    deadline = time.time() + 240
+    while time.time() < deadline and proc.poll() is None:
+        if progress.exists() and len(rows(progress)) >= 3:
+            break
+        time.sleep(0.2)
+    assert proc.poll() is None, proc.stderr.read().decode()[-2000:]
+    proc.send_signal(signal.SIGTERM)
+    assert proc.wait(timeout=120) == 0
+    summary = json.loads((run_dir / "summary.json").read_text())
+    assert not summary["finished"] and 150 <= summary["steps"] < 100000
+    meta = json.loads((run_dir / "checkpoints" / (run_dir / "checkpoints" / "latest").read_text() / "meta.json").read_text())
+    assert meta["frames"] == summary["steps"]  # checkpointed where it stopped, not at the last periodic checkpoint
+    resumed = train.train(config(run_dir, "task=cliff_cheetah", "algo=ours", f"total_steps={summary['steps'] + 50}",
+                                 "resume=true"))
+    assert resumed["steps"] == summary["steps"] + 50 and resumed["finished"]
+
+
 def test_a_crash_while_checkpointing_keeps_the_previous_checkpoint(tmp_path):
     checkpoints = train_utils.Checkpoints(tmp_path)
     checkpoints.save(100, lambda folder: (folder / "state.pt").write_text("first"), {"frames": 100})

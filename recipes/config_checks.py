@@ -1,0 +1,111 @@
+"""The recipe's configuration checks: every configuration that cannot run fails before anything is built."""
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+from omegaconf import DictConfig, OmegaConf
+
+from cpu_speed import MATMUL_PRECISIONS
+from run_files import Checkpoints
+from torchrl_reset_envs import TASKS
+
+__all__ = ["ALGOS", "ConfigError", "reset_horizon", "validate", "should_resume", "torch_threads"]
+
+
+ALGOS = ("ours", "lnt", "lnt_sparse")
+
+
+class ConfigError(ValueError):
+    """A configuration that cannot run; raised before anything is built."""
+
+
+def reset_horizon(cfg: DictConfig) -> int:
+    return 2 * int(cfg.task.forward_horizon) if cfg.reset.max_steps is None else int(cfg.reset.max_steps)
+
+
+def validate(cfg: DictConfig) -> None:
+    """Raise :class:`ConfigError` for every configuration that cannot run, before training starts."""
+    problems = []
+    if cfg.task.name not in TASKS:
+        problems.append(f"unknown task {cfg.task.name!r}; known: {', '.join(TASKS)}")
+    if cfg.algo.name not in ALGOS:
+        problems.append(f"unknown algorithm {cfg.algo.name!r}; known: {', '.join(ALGOS)}")
+    if not 0.0 < float(cfg.task.p_thresh) < 1.0:
+        problems.append(f"task.p_thresh must lie in (0, 1), got {cfg.task.p_thresh}")
+    if cfg.algo.name == "ours" and cfg.algo.threshold is not None and not 0.0 < float(cfg.algo.threshold) < 1.0:
+        problems.append(f"algo.threshold (a success probability) must lie in (0, 1), got {cfg.algo.threshold}")
+    h_f = int(cfg.task.forward_horizon)
+    if h_f < 1:
+        problems.append(f"task.forward_horizon (H_f) must be >= 1, got {h_f}")
+    elif reset_horizon(cfg) < h_f:
+        problems.append(f"reset.max_steps (H_r = {reset_horizon(cfg)}) must be >= H_f = {h_f}")
+    for key in ("total_steps", "eval_every", "log_every", "checkpoint_every", "forward.batch_size", "reset.batch_size"):
+        value = OmegaConf.select(cfg, key)
+        if not isinstance(value, int) or value < 1:
+            problems.append(f"{key} must be a positive integer, got {value!r}")
+    env = cfg.get("env") or {}
+    if env.get("backend", "sim") == "rtde" and not env.get("host"):
+        problems.append("env.backend=rtde needs env.host=<the controller's address>")
+    if env and not cfg.task.name.startswith("ur3_"):
+        problems.append(f"env.* options ({', '.join(env)}) only apply to the UR3 tasks")
+    precision = OmegaConf.select(cfg, "speed.matmul_precision", default="ieee")
+    if precision not in MATMUL_PRECISIONS:
+        problems.append(f"speed.matmul_precision must be one of {', '.join(MATMUL_PRECISIONS)}; got {precision!r}")
+    sampling = OmegaConf.select(cfg, "algo.nstep_sampling", default="episode")
+    if cfg.algo.name == "ours" and sampling not in ("episode", "transition"):
+        problems.append(f"algo.nstep_sampling must be episode or transition, got {sampling!r}")
+    compile_agents = OmegaConf.select(cfg, "speed.compile", default=[])
+    if not OmegaConf.is_list(compile_agents) or not set(compile_agents) <= {"forward", "reset"}:
+        problems.append(f"speed.compile must be a list of agents among forward, reset; got {compile_agents!r}")
+    if int(cfg.heat_up) < 0:
+        problems.append(f"heat_up must be >= 0, got {cfg.heat_up}")
+    if problems:
+        raise ConfigError("invalid configuration:\n  - " + "\n  - ".join(problems))
+    checkpoints = Checkpoints(Path(cfg.run_dir) / "checkpoints", keep=int(cfg.keep_checkpoints))
+    latest = checkpoints.latest()
+    if cfg.resume not in (True, False, "auto"):
+        raise ConfigError(f"resume must be true, false or auto, got {cfg.resume!r}")
+    if should_resume(cfg):
+        if latest is None:
+            raise ConfigError(f"resume=true but {checkpoints.root} holds no complete checkpoint to resume from.")
+        meta = json.loads((latest / "meta.json").read_text())
+        for key, value in (("task", cfg.task.name), ("algo", cfg.algo.name)):
+            if meta[key] != value:
+                raise ConfigError(
+                    f"the checkpoint in {latest} is from {key} {meta[key]!r}, this run is {key} {value!r}; "
+                    "use another run_dir or the matching task and algo."
+                )
+    elif latest is not None:
+        raise ConfigError(
+            f"{cfg.run_dir} already holds a checkpoint ({latest.name}); pass resume=true to continue it, or "
+            "choose another run_dir."
+        )
+    threads = cfg.threads
+    if threads != "auto" and not (isinstance(threads, int) and threads >= 1):
+        raise ConfigError(f"threads must be a positive integer or auto, got {threads!r}")
+
+
+def should_resume(cfg: DictConfig) -> bool:
+    """``resume``: true, false, or auto (continue from the run folder's checkpoint when it has one:
+    launching the same grid again continues every run where it stopped)."""
+    if cfg.resume == "auto":
+        return Checkpoints(Path(cfg.run_dir) / "checkpoints").latest() is not None
+    return bool(cfg.resume)
+
+
+def torch_threads(cfg: DictConfig) -> int:
+    """``threads``: a number, or auto: one per run in a Hydra multirun (runs go in parallel, one per
+    core), else up to two."""
+    if cfg.threads != "auto":
+        return int(cfg.threads)
+    try:
+        from hydra.core.hydra_config import HydraConfig
+        from hydra.types import RunMode
+
+        if HydraConfig.initialized() and HydraConfig.get().mode == RunMode.MULTIRUN:
+            return 1
+    except (ImportError, ValueError):
+        pass
+    return max(1, min(2, os.cpu_count() or 1))

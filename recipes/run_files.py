@@ -1,0 +1,141 @@
+"""A run folder's files: crash-safe checkpoints, append-only CSV tables, the code version, summaries."""
+from __future__ import annotations
+
+import csv
+import json
+import os
+import shutil
+import subprocess
+from pathlib import Path
+from typing import Callable
+
+__all__ = ["code_version", "Checkpoints", "success_rate_by_quarter", "CsvTable"]
+
+
+def code_version() -> dict:
+    """The commit the code runs at and whether the work tree differs from it (None outside a git checkout)."""
+    root = Path(__file__).resolve().parents[1]
+    try:
+        commit = subprocess.run(["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True, text=True,
+                                timeout=10, check=True).stdout.strip()
+        status = subprocess.run(["git", "-C", str(root), "status", "--porcelain", "--untracked-files=no"],
+                                capture_output=True, text=True, timeout=10, check=True).stdout.strip()
+    except (OSError, subprocess.SubprocessError):
+        return {"commit": None, "modified": None}
+    return {"commit": commit, "modified": bool(status)}
+
+
+class Checkpoints:
+    """Complete checkpoints in ``root/step_<frames>/``, the newest named by ``root/latest``.
+
+    A checkpoint is written into a temporary folder, which is renamed into place once complete; then
+    ``latest`` is replaced atomically. A crash while checkpointing leaves the previous checkpoint and
+    ``latest`` untouched.
+    """
+
+    def __init__(self, root: Path, keep: int = 2):
+        self.root = Path(root)
+        self.keep = max(1, int(keep))
+
+    def latest(self) -> Path | None:
+        pointer = self.root / "latest"
+        if not pointer.exists():
+            return None
+        path = self.root / pointer.read_text().strip()
+        return path if (path / "meta.json").exists() else None
+
+    def save(self, frames: int, write: Callable[[Path], None], meta: dict) -> Path:
+        self.root.mkdir(parents=True, exist_ok=True)
+        tmp = self.root / f".tmp-step_{frames:010d}-{os.getpid()}"
+        if tmp.exists():
+            shutil.rmtree(tmp)
+        tmp.mkdir()
+        write(tmp)
+        (tmp / "meta.json").write_text(json.dumps(meta, indent=2))  # written last: marks the folder complete
+        _fsync_tree(tmp)
+        final = self.root / f"step_{frames:010d}"
+        if final.exists():
+            shutil.rmtree(final)
+        os.rename(tmp, final)
+        pointer_tmp = self.root / f".latest-{os.getpid()}"
+        with open(pointer_tmp, "w") as f:
+            f.write(final.name)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(pointer_tmp, self.root / "latest")
+        _fsync_dir(self.root)
+        for old in sorted(self.root.glob("step_*"))[: -self.keep]:
+            shutil.rmtree(old, ignore_errors=True)
+        return final
+
+
+def _fsync_dir(path: Path) -> None:
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def _fsync_tree(root: Path) -> None:
+    for dirpath, _, filenames in os.walk(root):
+        for name in filenames:
+            with open(os.path.join(dirpath, name), "rb") as f:
+                os.fsync(f.fileno())
+        _fsync_dir(Path(dirpath))
+
+
+def success_rate_by_quarter(progress: Path) -> dict:
+    """The reset success rate within the first and the last quarter of a run's steps, from ``progress.csv``
+    (the cumulative counters at the log rows): whether the reset agent got better."""
+    out = {"reset_success_rate_first_quarter": None, "reset_success_rate_last_quarter": None}
+    if not Path(progress).exists():
+        return out
+    with open(progress, newline="") as f:
+        rows = [(int(float(r["frames"])), int(r["successful_resets"]), int(r["manual_resets"])) for r in csv.DictReader(f)]
+    if len(rows) < 4:
+        return out
+    total = rows[-1][0]
+
+    def at(frames: int) -> tuple[int, int]:
+        before = [r for r in rows if r[0] <= frames]
+        return (before[-1][1], before[-1][2]) if before else (0, 0)
+
+    def rate(start: tuple[int, int], end: tuple[int, int]):
+        ended = (end[0] - start[0]) + (end[1] - start[1])
+        return (end[0] - start[0]) / ended if ended else None
+
+    out["reset_success_rate_first_quarter"] = rate((0, 0), at(total // 4))
+    out["reset_success_rate_last_quarter"] = rate(at(total - total // 4), at(total))
+    return out
+
+
+class CsvTable:
+    """An append-only CSV file with a fixed header; on resume, rows after the checkpoint are dropped."""
+
+    def __init__(self, path: Path, fields: list[str]):
+        self.path = Path(path)
+        self.fields = fields
+
+    def truncate_after(self, frames: int) -> None:
+        if not self.path.exists():
+            return
+        with open(self.path, newline="") as f:
+            rows = [row for row in csv.DictReader(f) if int(float(row["frames"])) <= frames]
+        self._rewrite(rows)
+
+    def _rewrite(self, rows) -> None:
+        tmp = self.path.with_suffix(".tmp")
+        with open(tmp, "w", newline="") as f:
+            writer = csv.DictWriter(f, fieldnames=self.fields)
+            writer.writeheader()
+            writer.writerows(rows)
+        os.replace(tmp, self.path)
+
+    def append(self, row: dict) -> None:
+        new = not self.path.exists()
+        with open(self.path, "a", newline="") as f:
+            writer = csv.DictWriter(f, fieldnames=self.fields, extrasaction="ignore")
+            if new:
+                writer.writeheader()
+            writer.writerow(row)
