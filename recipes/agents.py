@@ -135,6 +135,10 @@ def make_reset_agent(cfg: DictConfig, obs_dim: int, action_spec) -> Agent:
             obs_dim, act_dim, num_members=cfg.algo.num_members, hidden_sizes=tuple(cfg.hidden_sizes),
             prior_scale=cfg.algo.prior_scale,
         )
+        bias = OmegaConf.select(cfg, "algo.initial_logit_bias", default=None)
+        if bias is not None:  # not the paper's: a pessimistic start, before the targets copy the networks
+            with torch.no_grad():
+                getattr(model, f"bias_{model.num_layers - 1}").fill_(float(bias))
         loss = RCELoss(actor, model, gamma=cfg.gamma, n_steps=cfg.algo.n_steps,
                        clip_target_values=bool(OmegaConf.select(cfg, "algo.clip_target_values", default=False)))
         optimizer = make_adam(cfg, [
@@ -153,7 +157,8 @@ def make_reset_agent(cfg: DictConfig, obs_dim: int, action_spec) -> Agent:
             {"params": list(loss.actor_network_params.values(True, True)), "lr": cfg.reset.actor_lr},
             {"params": list(loss.value_network_params.values(True, True)), "lr": cfg.reset.critic_lr},
         ])
-    return Agent(actor, loss, optimizer, FusedSoftUpdate(loss, tau=cfg.tau), model)
+    tau = OmegaConf.select(cfg, "reset.tau", default=None)
+    return Agent(actor, loss, optimizer, FusedSoftUpdate(loss, tau=cfg.tau if tau is None else float(tau)), model)
 
 
 def make_trigger(cfg: DictConfig, reset_agent: Agent) -> ResetTriggerTransform:

@@ -357,3 +357,20 @@ def test_diagnostics_score_every_forward_step_and_resets_csv_has_every_reset_epi
     summary = json.loads((tmp_path / "summary.json").read_text())
     assert summary["episodic_resets"] == int(progress["forward_episodes"])
     assert summary["resets_saved"] == summary["episodic_resets"] - summary["manual_resets"]
+
+
+def test_options_beside_the_paper_a_pessimistic_start_and_the_reset_agents_own_tau(tmp_path):
+    # the paper's setting: trained output biases start at zero and the reset agent's tau is the global one
+    spec = train_utils.make_env("peg_insertion_insert").action_spec
+    torch.manual_seed(0)
+    paper = train_utils.make_reset_agent(config(tmp_path, "algo=ours"), 14, spec)
+    torch.manual_seed(0)
+    pessimistic = train_utils.make_reset_agent(config(tmp_path, "algo=ours", "algo.initial_logit_bias=-4",
+                                                     "reset.tau=0.01"), 14, spec)
+    td = TensorDict(observation=torch.randn(32, 14), action=torch.rand(32, 7) * 2 - 1, batch_size=[32])
+    with torch.no_grad():
+        shift = pessimistic.model(td.clone())["state_action_logit"] - paper.model(td.clone())["state_action_logit"]
+    torch.testing.assert_close(shift, torch.full_like(shift, -4.0))  # every member's logit, exactly -4 lower
+    target = pessimistic.loss.target_classifier_network_params
+    assert torch.all(target.get(f"bias_{pessimistic.model.num_layers - 1}") == -4.0)  # the targets start alike
+    assert paper.targets.eps == pytest.approx(1 - 0.001) and pessimistic.targets.eps == pytest.approx(1 - 0.01)
