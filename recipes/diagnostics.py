@@ -24,7 +24,9 @@ RESET_FIELDS = ["frames", "outcome", "steps", "distance_to_start", "distance_to_
 
 
 class TriggerScores:
-    """Accumulates the trigger's score on every executed forward step between two log rows."""
+    """Accumulates the trigger's score of every forward action between two log rows: the executed ones
+    and the ones it stopped (or scored after H_f), so its minimum and its share below the threshold
+    show the triggers too."""
 
     def __init__(self, score_key, threshold: float):
         self.score_key, self.threshold = score_key, float(threshold)
@@ -34,6 +36,11 @@ class TriggerScores:
         score = batch.get(("next", self.score_key), None)
         if score is not None:
             self._scores.append(score.reshape(-1).detach().cpu())
+
+    def add_event(self, event: dict) -> None:
+        """The score of an action that was scored but not executed (a trigger, or the action after H_f)."""
+        if event.get("scores"):
+            self._scores.append(torch.tensor(event["scores"][:1]))
 
     def row(self) -> dict:
         scores = torch.cat(self._scores) if self._scores else torch.zeros(0)

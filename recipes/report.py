@@ -85,6 +85,11 @@ class Run:
         self.p_thresh = self.summary.get("p_thresh")
         if budget is not None:
             self.summary = {**self.summary, **self._at_budget(budget)}
+        elif not self.summary.get("finished", True):
+            # a run resumed after its summary was written: read it as it stands now
+            frames = self.table("progress.csv").get("frames", [])
+            if len(frames) and frames[-1] > self.summary.get("steps", 0):
+                self.summary = {**self.summary, **self._at_budget(2**62)}
         self.summary.update(self._resets_saved())
 
     def table(self, name: str) -> dict[str, np.ndarray]:

@@ -6,10 +6,11 @@ import json
 import os
 import shutil
 import subprocess
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Callable
 
-__all__ = ["code_version", "Checkpoints", "success_rate_by_quarter", "CsvTable"]
+__all__ = ["RunFolderBusy", "run_folder_lock", "code_version", "Checkpoints", "success_rate_by_quarter", "CsvTable"]
 
 
 def code_version() -> dict:
@@ -139,3 +140,31 @@ class CsvTable:
             if new:
                 writer.writeheader()
             writer.writerow(row)
+
+
+class RunFolderBusy(RuntimeError):
+    """Another process is training in this run folder."""
+
+
+@contextmanager
+def run_folder_lock(run_dir: Path):
+    """Holds ``run_dir/.lock`` for the whole run, so that two runs never write into one folder (two jobs
+    of a grid whose run_dir does not tell them apart, say). Where file locks are unavailable, does nothing."""
+    try:
+        import fcntl
+    except ImportError:  # not a POSIX system
+        yield
+        return
+    handle = open(Path(run_dir) / ".lock", "w")
+    try:
+        try:
+            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            raise RunFolderBusy(
+                f"another process is training in {run_dir}. Give every run its own run_dir; in a grid over "
+                "other keys, put them in it (run_dir='runs/${task.name}/${algo.name}/p${task.p_thresh}/seed${seed}')."
+            ) from None
+        yield
+    finally:
+        handle.close()
+

@@ -38,7 +38,14 @@ from agents import lnt_batch, make_forward_agent, make_reset_agent, with_explora
 from buffers import buffer_keys, make_buffers  # noqa: E402
 from config_checks import ConfigError, reset_horizon, should_resume, torch_threads, validate  # noqa: E402
 from cpu_speed import choose_matmul_precision, matmul_products, retain_freed_memory  # noqa: E402
-from run_files import Checkpoints, CsvTable, code_version, success_rate_by_quarter  # noqa: E402
+from run_files import (  # noqa: E402
+    Checkpoints,
+    CsvTable,
+    RunFolderBusy,
+    code_version,
+    run_folder_lock,
+    success_rate_by_quarter,
+)
 from task_envs import (  # noqa: E402
     EVAL_SEED_OFFSET,
     UpdateBudget,
@@ -82,6 +89,13 @@ class RobotStopped(RuntimeError):
 
 def train(cfg: DictConfig) -> dict:
     """Run (or resume) one training run; returns the summary also written to ``summary.json``."""
+    run_dir = Path(cfg.run_dir)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    with run_folder_lock(run_dir):
+        return _train(cfg)
+
+
+def _train(cfg: DictConfig) -> dict:
     validate(cfg)
     run_dir = Path(cfg.run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
@@ -168,6 +182,11 @@ def train(cfg: DictConfig) -> dict:
             table.truncate_after(collector.frames)
         log.info("resumed from %s at step %d", folder, collector.frames)
     else:
+        # a fresh start: tables left by an earlier attempt that never checkpointed start over
+        for table in (progress, evals, triggers, diagnostics, resets):
+            table.truncate_after(-1)
+        for stale in ("summary.json", "code.jsonl"):
+            (run_dir / stale).unlink(missing_ok=True)
         (run_dir / "config.yaml").write_text(OmegaConf.to_yaml(cfg, resolve=True))
     # the code each stretch of the run ran at (a resumed run appends its own line)
     with open(run_dir / "code.jsonl", "a") as f:
@@ -254,7 +273,11 @@ def train(cfg: DictConfig) -> dict:
             else:
                 reset_rb.extend(batch.select(*reset_keys, strict=False))
                 if updating and fits("reset"):
+                    fallbacks = getattr(reset_rb.sampler, "fallbacks", 0)
                     sample = reset_rb.sample().to(cfg.device)
+                    if getattr(reset_rb.sampler, "fallbacks", 0) > fallbacks:
+                        # no reset episode has n transitions yet: the release uses the one-step label
+                        sample.set("one_step", torch.ones(sample.shape[0], dtype=torch.bool, device=sample.device))
                     if cfg.algo.name == "ours":
                         sample.set("example", collector.example_buffer.sample(sample.shape[0]).to(cfg.device))
                         out = update(reset, sample, ("loss_actor", "loss_classifier"))
@@ -270,6 +293,7 @@ def train(cfg: DictConfig) -> dict:
             last = now
             bar.update(batch.numel())
             for event in collector.pop_events():
+                trigger_scores.add_event(event)
                 if event["phase"] == "reset":
                     resets.append(distances.row(event))
                 if event["outcome"] == "triggered":
@@ -285,10 +309,12 @@ def train(cfg: DictConfig) -> dict:
                 history["elapsed"] = time.perf_counter() - start
                 row = log_row(history["elapsed"])
                 progress.append(row)
+                fallbacks = getattr(reset_rb.sampler, "fallbacks", "")
                 with torch.random.fork_rng(devices=[]):  # the probe's samples leave training's random stream as it was
                     probe = probe_classifier(cfg.algo.name, reset.model, reset.actor, collector.example_buffer,
                                              forward_rb, reset_rb, trigger.threshold)
-                fallbacks = getattr(reset_rb.sampler, "fallbacks", "")
+                if fallbacks != "":
+                    reset_rb.sampler.fallbacks = fallbacks  # the probe's own sample does not count
                 diagnostics.append({"frames": frames, **trigger_scores.row(), **probe, "sampler_fallbacks": fallbacks})
                 for logger in loggers:
                     logger.log_metrics({k: v for k, v in row.items() if k != "frames" and not _isnan(v)}, step=frames)
@@ -316,7 +342,9 @@ def train(cfg: DictConfig) -> dict:
     history["elapsed"] = time.perf_counter() - start
     checkpoint()
     summary = {
-        "task": cfg.task.name, "algo": cfg.algo.name, "seed": int(cfg.seed), "p_thresh": float(cfg.task.p_thresh),
+        "task": cfg.task.name, "algo": cfg.algo.name, "seed": int(cfg.seed),
+        # the threshold the trigger used (ours: algo.threshold when set, else the task's p_thresh)
+        "p_thresh": float(trigger.threshold) if cfg.algo.name == "ours" else float(cfg.task.p_thresh),
         "steps": collector.frames, "finished": collector.frames >= int(cfg.total_steps) and not interrupted,
         "average_return": float(np.mean(history["eval_returns"])) if history["eval_returns"] else None,
         "manual_resets": collector.counters["manual_resets"],
@@ -377,9 +405,9 @@ def _json_default(value):
 def main(cfg: DictConfig) -> None:
     try:
         summary = train(cfg)
-    except (ConfigError, TrainingDiverged, RobotStopped) as err:
+    except (ConfigError, RunFolderBusy, TrainingDiverged, RobotStopped) as err:
         print(f"error: {err}", file=sys.stderr)
-        sys.exit({ConfigError: 2, TrainingDiverged: 3}.get(type(err), 4))
+        sys.exit({ConfigError: 2, RunFolderBusy: 2, TrainingDiverged: 3}.get(type(err), 4))
     width = max(map(len, summary))
     for key, value in summary.items():
         print(f"{key:<{width}}  {value:.4g}" if isinstance(value, float) else f"{key:<{width}}  {value}")

@@ -191,3 +191,20 @@ def test_episode_window_sampler_survives_dumps_and_loads(tmp_path):
     b = fresh.sample()["observation"]
     torch.testing.assert_close(a, b)
     assert set(a.squeeze(-1).long().tolist()) <= {0, 1, 5, 6, 7, 8, 9, 10, 16, 17, 18}
+
+
+def test_a_buffer_saved_with_another_sampler_loads_into_episode_windows(tmp_path):
+    from torchrl.data import RandomSampler
+
+    from torchrl_reset import EpisodeWindowSampler
+
+    old = ReplayBuffer(storage=LazyTensorStorage(50), sampler=RandomSampler(), batch_size=500)
+    old.extend(_episodes([5, 9, 2]))
+    old.dumps(tmp_path / "rb")
+    sampler = EpisodeWindowSampler(4)
+    fresh = ReplayBuffer(storage=LazyTensorStorage(50), sampler=sampler, batch_size=500)
+    with pytest.warns(UserWarning, match="rebuilding"):
+        fresh.loads(tmp_path / "rb")
+    # the episodes of 5 and 9 rows give starts 0-1 and 5-10; the 2-row one none
+    assert set(fresh.sample()["observation"].squeeze(-1).long().tolist()) == {0, 1, 5, 6, 7, 8, 9, 10}
+    assert sampler.state_dict()["length"] == [5, 9, 2]

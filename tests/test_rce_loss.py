@@ -295,3 +295,18 @@ def test_actor_that_does_not_write_the_action_is_rejected():
     actor = TensorDictModule(nn.Linear(1, 1), in_keys=["observation"], out_keys=["act"])
     with pytest.raises(ValueError, match="action"):
         RCELoss(actor, linear_logit_ensemble([1.0]))
+
+
+def test_a_batch_marked_one_step_gets_the_one_step_label_and_needs_no_nstep_entry():
+    # the release's fallback while no reset episode has n transitions: n = 10, but the one-step label
+    gamma = 0.9
+    loss = RCELoss(constant_actor(0.0), linear_logit_ensemble(SLOPES), gamma=gamma, n_steps=10)
+    data = batch(obs=[0.0, 0.0], nxt=[0.5, 2.0])  # no "nstep" entry
+    with pytest.raises(KeyError, match="nstep"):
+        loss.labels(data)
+    data.set("one_step", torch.ones(2, dtype=torch.bool))
+    label, weight = loss.labels(data)
+    expected = [gamma * math.exp(-2 * x) / (1 + gamma * math.exp(-2 * x)) for x in (0.5, 2.0)]  # steepest member
+    torch.testing.assert_close(label, torch.tensor(expected), rtol=1e-6, atol=0)
+    torch.testing.assert_close(weight, 1 + gamma * torch.exp(-2 * torch.tensor([0.5, 2.0])), rtol=1e-6, atol=0)
+    assert torch.isfinite(loss(data)["loss_classifier"])

@@ -250,23 +250,27 @@ class DualCollector(BaseCollector):
 
         Each record: ``phase``, ``outcome`` (``triggered``, ``requested``, ``success``, ``manual``,
         ``terminated``), ``steps``, ``frame`` (executed steps when it ended) and ``state`` (for a
-        triggered episode the state just before the trigger, else the episode's last state).
+        triggered episode the state just before the trigger, else the episode's last state); a
+        forward episode ended by the trigger or at H_f also has ``scores``, the triggers' scores of
+        the action that was not executed.
         """
         events, self._events = self._events, []
         return events
 
     # --------------------------------------------------------------- the loop
-    def _record(self, outcome: str, state: TensorDictBase) -> None:
+    def _record(self, outcome: str, state: TensorDictBase, scored: TensorDictBase | None = None) -> None:
         if len(self._events) < self.max_events:
-            self._events.append(
-                {
-                    "phase": PHASE_NAMES[self._phase],
-                    "outcome": outcome,
-                    "steps": self._phase_steps,
-                    "frame": self._frames,
-                    "state": state.select(*self.example_buffer.state_keys).clone(),
-                }
-            )
+            event = {
+                "phase": PHASE_NAMES[self._phase],
+                "outcome": outcome,
+                "steps": self._phase_steps,
+                "frame": self._frames,
+                "state": state.select(*self.example_buffer.state_keys).clone(),
+            }
+            if scored is not None and self.triggers:  # the triggers' scores of the action they stopped
+                event["scores"] = [float(scored.get(t.score_key).reshape(-1)[0]) for t in self.triggers
+                                   if scored.get(t.score_key, None) is not None]
+            self._events.append(event)
 
     def _begin(self, phase: int, td: TensorDictBase) -> None:
         """Starts an episode of ``phase`` from the state in ``td`` (a root tensordict); a forward
@@ -335,7 +339,7 @@ class DualCollector(BaseCollector):
             # lines 10-11: trigger reset; the action was not executed, no transition to store
             self.counters["triggered_resets"] += 1
             self.counters["forward_episodes"] += 1
-            self._record("triggered", td)
+            self._record("triggered", td, next_td)
             self._begin(RESET, self._continue_from(td))
             return None, True
         step = self._executed(td, FORWARD)  # lines 14-16: env.step, store (the caller updates)
@@ -354,11 +358,12 @@ class DualCollector(BaseCollector):
         # forward episode steps", so a trigger there is a triggered reset, else the reset is requested.
         # That action is not executed either way.
         root = self._continue_from(td)
-        outcome = "triggered" if self._would_trigger(root) else "requested"
+        fired, scored = self._would_trigger(root)
+        outcome = "triggered" if fired else "requested"
         self.counters["forward_episodes"] += 1
         self.counters[f"{outcome}_resets"] += 1
         self._mark_end(step)
-        self._record(outcome, root)
+        self._record(outcome, root, scored)
         self._begin(RESET, root)
         return step, True
 
@@ -392,15 +397,18 @@ class DualCollector(BaseCollector):
             self._begin(FORWARD, self._manual_reset())
         return step, True
 
-    def _would_trigger(self, root: TensorDictBase) -> bool:
+    def _would_trigger(self, root: TensorDictBase) -> tuple[bool, TensorDictBase | None]:
         """Whether the trigger fires on the action the forward policy would take in ``root`` (which is
-        not executed either way); without a trigger transform no action is drawn."""
+        not executed either way), and the tensordict it scored; without a trigger transform no action
+        is drawn. The policy's output is scored as it is: a transform that changes actions must not
+        sit between the trigger and the policy (the trigger is the env's outermost transform)."""
         if not self.triggers:
-            return False
+            return False, None
         root.set(self.init_key, torch.tensor([False], device=root.device))
         with torch.no_grad(), set_exploration_type(self.exploration_type):
             scored = self.forward_policy(root.clone(False))  # a shallow copy: root keeps no action
-        return any(bool(trigger.score_step(scored).any()) for trigger in self.triggers if trigger.enabled)
+        fired = [bool(trigger.score_step(scored).any()) for trigger in self.triggers if trigger.enabled]
+        return any(fired), scored
 
     @staticmethod
     def _mark_end(step: TensorDictBase) -> None:

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+import warnings
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -224,6 +225,7 @@ class EpisodeWindowSampler(Sampler):
         self._first = 0  # segments before it were overwritten entirely
         self._count = 0
         self._rows = 0  # rows held
+        self._rebuild = False
 
     def add(self, index) -> None:
         self._unread.append(torch.as_tensor(index).reshape(-1))
@@ -270,6 +272,9 @@ class EpisodeWindowSampler(Sampler):
     def sample(self, storage, batch_size: int) -> tuple[torch.Tensor, dict]:
         if len(storage) == 0:
             raise RuntimeError("EpisodeWindowSampler: cannot sample from an empty storage.")
+        if self._rebuild:
+            self._rebuild = False
+            self._unread = [torch.arange(len(storage))]
         self._read(storage)
         lengths = self._length[self._first : self._count]
         eligible = np.flatnonzero(lengths >= self.n_steps) + self._first
@@ -305,7 +310,16 @@ class EpisodeWindowSampler(Sampler):
         (path / "episode_window_sampler.json").write_text(json.dumps(self.state_dict()))
 
     def loads(self, path) -> None:
-        self.load_state_dict(json.loads((Path(path) / "episode_window_sampler.json").read_text()))
+        file = Path(path) / "episode_window_sampler.json"
+        if file.exists():
+            self.load_state_dict(json.loads(file.read_text()))
+            return
+        # a buffer saved with another sampler: rebuild the episodes from the stored rows at the next
+        # sample (in slot order, which is write order unless the storage had wrapped around)
+        warnings.warn("no EpisodeWindowSampler state in the saved buffer: rebuilding its episodes from the "
+                      "stored rows.", stacklevel=2)
+        self._empty()
+        self._rebuild = True
 
     def __repr__(self) -> str:
         return f"{type(self).__name__}(n_steps={self.n_steps}, episodes={self._count - self._first}, rows={self._rows})"

@@ -27,8 +27,8 @@ class RCELoss(LossModule):
     Paper: Kim et al. (RA-L 2022), Eq. 2-3 and "Implementation details", with the facts of the
     authors' implementation (method.md section 3). For replay transitions ``(s_t, a_t, s_{t+1},
     s_{t+n})`` and success examples ``s*`` (examples of initial states), with target classifiers
-    ``C'`` and actions from the current reset policy ``pi`` (no noise), ``w(C) = C / (1 - C)`` with
-    ``C`` clipped to [0, 0.5]:
+    ``C'`` and actions from the current reset policy ``pi`` (no noise), and ``w(C) = C / (1 - C)``
+    (in the weight, with ``C`` clipped to [0, 0.5]):
 
     - label, per member ``i``: ``y_i = 0.5 * (g C1 / (1 + (g - 1) C1) + g^n Cn / (1 + (g^n - 1) Cn))``
       with ``C1 = C'_i(s_{t+1}, pi(s_{t+1}))`` and ``Cn = C'_i(s_{t+n}, pi(s_{t+n}))``, the target
@@ -103,6 +103,10 @@ class RCELoss(LossModule):
                 (:meth:`InitialStateBuffer.sample <torchrl_reset.InitialStateBuffer.sample>` writes
                 it). Optional: when present, the priors' part of each example is computed once and
                 kept (:meth:`EnsembleValueOperator.paired_logits`). Defaults to ``"index"``.
+            one_step (NestedKey): optional boolean entry at the root; when it holds True the batch gets
+                the one-step label and needs no ``"nstep"`` entry (the release's fallback while no
+                reset episode has n transitions: :class:`~torchrl_reset.EpisodeWindowSampler`).
+                Defaults to ``"one_step"``.
         """
 
         action: NestedKey = "action"
@@ -111,6 +115,7 @@ class RCELoss(LossModule):
         nstep_state: NestedKey = "nstep"
         example_state: NestedKey = "example"
         example_index: NestedKey = "index"
+        one_step: NestedKey = "one_step"
 
     default_keys = _AcceptedKeys
     tensor_keys: _AcceptedKeys
@@ -226,9 +231,15 @@ class RCELoss(LossModule):
     def _target_states(self, replay: TensorDictBase) -> TensorDictBase:
         """``s_{t+1}`` (and ``s_{t+n}`` when n > 1) stacked, for one actor and one target pass."""
         states = [self._require(replay, self.tensor_keys.next_state, "s_{t+1}")]
-        if self.n_steps > 1:
+        if self._uses_nstep(replay):
             states.append(self._require(replay, self.tensor_keys.nstep_state, "s_{t+n}"))
         return torch.cat(states, 0)
+
+    def _uses_nstep(self, replay: TensorDictBase) -> bool:
+        if self.n_steps == 1:
+            return False
+        one_step = replay.get(self.tensor_keys.one_step, None)
+        return one_step is None or not bool(one_step.all())
 
     def _labels_from(self, observation: torch.Tensor, action: torch.Tensor, batch: int) -> tuple[torch.Tensor, torch.Tensor]:
         """Labels and weights from ``s_{t+1}`` (and ``s_{t+n}``) stacked, with the policy's actions there."""
