@@ -114,6 +114,8 @@ def evaluate(env: TransformedEnv, trigger: ResetTriggerTransform, forward_actor,
             forward_steps += 1
             td = step_mdp(td)
             seen("forward")
+        else:  # H_f steps: as in training, the next action is scored before the reset is requested
+            triggered = bool(trigger.score_step(forward_actor(td.clone(False))).any())
         trigger.set_enabled(False)
         success, reset_steps = False, 0
         for t in range(reset_horizon):
