@@ -161,7 +161,17 @@ def find_runs(paths: list[Path], budget: int | None = None) -> list[Run]:
     folders = sorted(folders)
     if not folders:
         raise SystemExit(f"no summary.json under {', '.join(map(str, paths))}: nothing to report.")
-    return [Run(folder, budget) for folder in folders]
+    runs = []
+    for folder in folders:
+        try:
+            runs.append(Run(folder, budget))
+        except ValueError as err:
+            if budget is None or "no progress.csv row" not in str(err):
+                raise
+            print(f"left out: {err}")  # a run that had not logged anything by the budget
+    if not runs:
+        raise SystemExit(f"no run had logged anything by step {budget}: nothing to report.")
+    return runs
 
 
 def _mean_std(values: list[float]) -> tuple[float, float]:
