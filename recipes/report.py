@@ -133,6 +133,8 @@ class Run:
             return out
         if "forward_episodes" in progress:
             out["episodic_resets"] = float(progress["forward_episodes"][-1])
+            if self.budget is None and self.summary.get("episodic_resets") is not None:
+                out["episodic_resets"] = float(self.summary["episodic_resets"])  # at the same step as manual_resets
         if "manual_resets" in progress and len(frames) >= 2:
             end = frames[-1]
             start = int(np.searchsorted(frames, end - end / 4, side="right")) - 1
