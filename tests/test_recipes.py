@@ -394,3 +394,22 @@ def test_two_runs_never_train_in_one_folder(tmp_path):
             train.train(config(tmp_path, "task=cliff_cheetah", "algo=ours", "total_steps=100"))
     assert not (tmp_path / "config.yaml").exists()  # nothing was written
     assert train.train(config(tmp_path, "task=cliff_cheetah", "algo=ours", "total_steps=100"))["steps"] == 100
+
+
+def test_a_robot_fault_stops_the_run_after_a_checkpoint(tmp_path, monkeypatch):
+    # e.g. more protective stops in the window than allowed: the run must not go on, and nothing is lost
+    from torchrl_reset_envs.ur3_backends import RobotFault
+
+    original = train.DualCollector._step
+
+    def faulty(self):  # the backend raises inside env.step, as RTDEBackend.read_state does
+        if self.frames >= 120:
+            raise RobotFault("11 protective stops within 600 s")
+        return original(self)
+
+    monkeypatch.setattr(train.DualCollector, "_step", faulty)
+    with pytest.raises(train.RobotStopped, match="protective stops.*resume=true"):
+        train.train(config(tmp_path, "task=ur3_peg", "algo=ours", "total_steps=400"))
+    latest = train_utils.Checkpoints(tmp_path / "checkpoints").latest()
+    assert int(json.loads((latest / "meta.json").read_text())["frames"]) == 120  # every step taken is kept
+    assert int(rows(tmp_path / "progress.csv")[-1]["frames"]) == 100
