@@ -52,8 +52,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "recipes"))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
-import train_utils  # noqa: E402
 from bench_updates import check_device, describe, machine, paper_config, write_results  # noqa: E402
+from torchrl_reset import accel  # noqa: E402
 from torchrl_reset_envs import make_env  # noqa: E402
 
 TASK = "peg_insertion_insert"
@@ -161,9 +161,9 @@ class NStepWriter:
 
 def run_stock(steps: int, heat_up: int, seed: int, update_products: str | None = None, device: str = "cpu") -> dict:
     """The stock loop; ``update_products`` runs its updates' matrix products as the recipe's
-    ``speed.matmul_precision`` does (``train_utils.matmul_products``), acting left as it is. On
+    ``speed.matmul_precision`` does (``accel.matmul_products``), acting left as it is. On
     ``device`` live the networks, the buffers and the environment's output (as in ours)."""
-    products = (lambda: train_utils.matmul_products(update_products)) if update_products else contextlib.nullcontext
+    products = (lambda: accel.matmul_products(update_products)) if update_products else contextlib.nullcontext
     cfg = paper_config("ours", seed=seed)
     torch.manual_seed(seed)
     env = make_env(TASK, seed=seed, device=device)
@@ -285,7 +285,7 @@ def main(argv=None) -> dict:
     torch.set_num_threads(args.threads)
 
     on_cpu = torch.device(device).type == "cpu"
-    precision = train_utils.choose_matmul_precision(paper_config("ours").speed.matmul_precision) if on_cpu else "ieee"
+    precision = accel.choose_matmul_precision(paper_config("ours").speed.matmul_precision) if on_cpu else "ieee"
     loops = {"ours": lambda *a: run_ours(*a, device=device), "stock": lambda *a: run_stock(*a, device=device)}
     if precision != "ieee":
         loops[f"stock, {precision} products"] = lambda *a: run_stock(*a, update_products=precision, device=device)

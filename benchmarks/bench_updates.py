@@ -15,7 +15,8 @@ Measures, in one run:
    the loss, backward, the optimizer step and the target update, for the forward DDPG agent
    (batch 64; eager, the recipe's default, through ``torch.compile``, and with torchrl's own
    ``DDPGLoss`` in place of the recipe's ``DirectDDPGLoss`` for comparison), the RCE reset agent
-   (K = 5, batch 256 + 256 examples, n = 10, priors) and the LNT reset agent (K = 20, batch 256),
+   (K = 5, batch 256 + 256 examples, n = 10, priors) and the LNT reset agent (K = 20, batch 256), each
+   also on the plain reference path (``speed.accelerate=false``) for the accelerator's gain,
    with the networks of the paper (400-300) on peg-insertion's sizes (14 observations, 7 actions).
    Beside each: its FLOPs (counted with ``torch.utils.flop_counter``'s formulas while it runs),
    the time those FLOPs take at the measured rate, and the fraction of that limit reached;
@@ -50,7 +51,7 @@ sys.path.insert(0, str(ROOT / "recipes"))
 
 import torchrl  # noqa: E402
 import train_utils  # noqa: E402
-from torchrl_reset import DirectDDPGLoss  # noqa: E402
+from torchrl_reset import accel  # noqa: E402
 
 OBS, ACT = 14, 7  # peg-insertion
 
@@ -101,16 +102,18 @@ def filled_buffers(cfg, transitions: int = 5000):
 
 
 def make_update(kind: str, *, members: int | None = None, batch: int | None = None, compiled: bool | None = None,
-                device: str = "cpu", stock_loss: bool = False):
+                device: str = "cpu", stock_loss: bool = False, accelerate: bool = True):
     """A closure running one whole update of ``kind`` (forward, ours, lnt) as the recipe runs it.
 
     Everything one step of that agent costs: the replay sample (and the success-example sample),
     moved to ``device`` as the recipe moves it, the loss, backward, the optimizer step and the
     target update. ``compiled`` overrides the recipe's ``speed.compile`` choice for this agent.
     ``stock_loss`` (forward only) swaps the recipe's loss for torchrl's own ``DDPGLoss`` on the
-    same networks, for comparison.
+    same networks, for comparison. ``accelerate=False`` builds the agent as ``speed.accelerate=false``
+    does: the plain reference classes and torch's default Adam.
     """
     overrides = {"device": device} if members is None else {"algo.num_members": members, "device": device}
+    overrides["speed.accelerate"] = accelerate
     for key, size in (("forward.batch_size", batch if kind == "forward" else None),
                       ("reset.batch_size", batch if kind != "forward" else None)):
         if size is not None:
@@ -118,7 +121,7 @@ def make_update(kind: str, *, members: int | None = None, batch: int | None = No
     cfg = paper_config("ours" if kind == "forward" else kind, **overrides)
     forward_rb, reset_rb, examples = filled_buffers(cfg)
     if kind == "forward":
-        loss_class = DDPGLoss if stock_loss else DirectDDPGLoss
+        loss_class = DDPGLoss if stock_loss else None  # None: the class speed.accelerate picks
         agent = train_utils.make_forward_agent(cfg, OBS, action_spec(), loss_class=loss_class)
         names = ("loss_actor", "loss_value")
     else:
@@ -303,7 +306,7 @@ def main(argv=None) -> dict:
     device = check_device(args.device)
     torch.set_num_threads(args.threads)
     torch.manual_seed(0)
-    train_utils.retain_freed_memory()  # as the recipe does (speed.retain_memory)
+    accel.retain_freed_memory()  # as the recipe does (speed.retain_memory)
     repeats = args.repeats if args.repeats is not None else (20 if args.quick else 60)
     if repeats < 1 or args.rounds < 1:
         raise SystemExit("--repeats and --rounds must be at least 1.")
@@ -311,38 +314,42 @@ def main(argv=None) -> dict:
     # the recipe's speed.matmul_precision (auto: oneDNN's bf16 path only where it measures as accurate
     # as plain float32; a CPU setting); every rate and limit below belongs to the precision its row ran with
     on_cpu = torch.device(device).type == "cpu"
-    precision = train_utils.choose_matmul_precision(paper_config("ours").speed.matmul_precision) if on_cpu else "ieee"
+    precision = accel.choose_matmul_precision(paper_config("ours").speed.matmul_precision) if on_cpu else "ieee"
     rates = {}
     for p in dict.fromkeys(("ieee", precision)):
-        with train_utils.matmul_products(p):
+        with accel.matmul_products(p):
             rates[p] = matmul_rate(device=device)
     rows = []
     reset_label = "reset RCE update (K = 5, batch 256 + 256 examples, n = 10)"
-    # (label, kind, compiled, products, torchrl's own DDPGLoss)
+    # (label, kind, compiled, products, torchrl's own DDPGLoss, accelerated); the last three rows are the
+    # plain reference path of each update (speed.accelerate=false), for the accelerator's gain
     cases = [
-        ("forward DDPG update (batch 64), eager", "forward", False, precision, False),
-        ("forward DDPG update (batch 64), torch.compile", "forward", True, precision, False),
-        ("forward DDPG update (batch 64), eager, torchrl's DDPGLoss", "forward", False, precision, True),
-        (reset_label, "ours", False, precision, False),
-        ("reset LNT update (K = 20, batch 256)", "lnt", False, precision, False),
+        ("forward DDPG update (batch 64), eager", "forward", False, precision, False, True),
+        ("forward DDPG update (batch 64), torch.compile", "forward", True, precision, False, True),
+        ("forward DDPG update (batch 64), eager, torchrl's DDPGLoss", "forward", False, precision, True, True),
+        (reset_label, "ours", False, precision, False, True),
+        ("reset LNT update (K = 20, batch 256)", "lnt", False, precision, False, True),
+        ("forward DDPG update (batch 64), reference path", "forward", False, "ieee", False, False),
+        (reset_label + ", reference path", "ours", False, "ieee", False, False),
+        ("reset LNT update (K = 20, batch 256), reference path", "lnt", False, "ieee", False, False),
     ]
     if precision != "ieee":
-        cases.insert(4, (reset_label + ", plain float32 products", "ours", False, "ieee", False))
+        cases.insert(4, (reset_label + ", plain float32 products", "ours", False, "ieee", False, True))
     # In rounds: every update is timed a third of its repeats per round, the updates in turn, so that
     # a slow spell of the shared machine weighs on all of them alike rather than on one row.
-    updates = [make_update(kind, compiled=compiled, device=device, stock_loss=stock)
-               for _, kind, compiled, _, stock in cases]
+    updates = [make_update(kind, compiled=compiled, device=device, stock_loss=stock, accelerate=fast)
+               for _, kind, compiled, _, stock, fast in cases]
     times = [[] for _ in cases]
     for _ in range(args.rounds):
         for i, case in enumerate(cases):
-            with train_utils.matmul_products(case[3]):  # as the recipe runs its updates
+            with accel.matmul_products(case[3]):  # as the recipe runs its updates
                 times[i] += run_timed(updates[i], max(1, repeats // args.rounds), device=device)
-    for i, (label, kind, compiled, p, _) in enumerate(cases):
+    for i, (label, kind, compiled, p, _, _) in enumerate(cases):
         result = summary(times[i])
         if kind == "forward" and i > 0:  # the same arithmetic as the first row
             result["flops"] = rows[0]["flops"]
         else:
-            with train_utils.matmul_products(p):
+            with accel.matmul_products(p):
                 result["flops"] = count_flops(updates[i])
         limit_ms = 1000 * result["flops"] / rates[p]
         rows.append({"update": label, "precision": p, **result, "flop_limit_ms": limit_ms,
@@ -350,13 +357,18 @@ def main(argv=None) -> dict:
     scaling = []
     for members in (1, 5, 10, 20):
         for batch in (64, 256, 1024):
-            with train_utils.matmul_products(precision):
+            with accel.matmul_products(precision):
                 result = time_update(make_update("ours", members=members, batch=batch, device=device),
                                      max(1, repeats // 4), warmup=2, device=device)
             scaling.append({"members": members, "batch": batch, **result})
 
     by = {(r["members"], r["batch"]): r["median_ms"] for r in scaling}
     forward, compiled, stock_forward, ours = rows[0], rows[1], rows[2], rows[3]  # the recipe's defaults: both losses eager
+    lnt = next(r for r, c in zip(rows, cases) if c[1] == "lnt" and c[5])
+    reference = {c[1]: r for r, c in zip(rows, cases) if not c[5]}
+    gains = {"forward": reference["forward"]["median_ms"] / forward["median_ms"],
+             "ours": reference["ours"]["median_ms"] / ours["median_ms"],
+             "lnt": reference["lnt"]["median_ms"] / lnt["median_ms"]}
     targets = [
         ("reset RCE update <= 35 ms", ours["median_ms"], ours["median_ms"] <= 35.0),
         ("reset RCE update <= 2x its FLOP-limit time", ours["median_ms"] / ours["flop_limit_ms"],
@@ -368,6 +380,7 @@ def main(argv=None) -> dict:
     report = {"machine": machine(device), "matmul_precision": precision,
               "matmul_gflops": {p: r / 1e9 for p, r in rates.items()}, "updates": rows, "scaling": scaling,
               "forward_vs_torchrl_ddpg_loss": stock_forward["median_ms"] / forward["median_ms"],
+              "reference_vs_accelerated": gains,
               "targets": [{"target": t, "measured": v, "met": ok} for t, v, ok in targets]}
 
     lines = [f"# Update speed ({report['machine']['date']})", "",
@@ -384,6 +397,8 @@ def main(argv=None) -> dict:
                      f"{r['flop_limit_ms']:.2f} | {100 * r['fraction_of_limit']:.0f}% |")
     lines += ["", "The forward update through torchrl's `DDPGLoss`, in times the recipe's (`DirectDDPGLoss`), "
               f"medians: {report['forward_vs_torchrl_ddpg_loss']:.2f}x.",
+              "", "The plain reference path (`speed.accelerate=false`), in times the accelerated update, medians: "
+              + ", ".join(f"{name} {gain:.2f}x" for name, gain in gains.items()) + ".",
               "", f"Reset RCE update ({precision} products), median ms (rows: K; columns: batch):", "",
               "| K | 64 | 256 | 1024 |", "|---|---|---|---|"]
     for members in (1, 5, 10, 20):

@@ -7,58 +7,22 @@ from typing import Any
 
 import torch
 from omegaconf import DictConfig, OmegaConf
-from tensordict.nn import TensorDictModuleBase, TensorDictSequential
+from tensordict.nn import TensorDictSequential
 from torch import nn
 from torchrl.modules import OrnsteinUhlenbeckProcessModule, TanhModule
 from torchrl.objectives import SoftUpdate
 
-from torchrl_reset import DirectDDPGLoss, EnsembleValueOperator, RCELoss, ResetTriggerTransform
+from torchrl_reset import ResetTriggerTransform, accel
 
-__all__ = ["TensorModule", "FusedSoftUpdate", "make_actor", "with_exploration", "make_adam", "Agent", "make_forward_agent", "make_reset_agent", "make_trigger", "lnt_batch"]
-
-
-class TensorModule(TensorDictModuleBase):
-    """``tensordict[out_key] = module(tensordict[in_key])``: what ``TensorDictModule`` does for one
-    tensor in and one out, written with a single ``set``.
-
-    tensordict 0.14's ``TensorDictModule`` passes each output through ``TensorDict.from_any``,
-    which for a plain tensor searches the import path for pandas on every call: about 0.2 ms
-    measured on the 2-core machines, more than a batch-1 policy's arithmetic, paid by every policy
-    call of the loop and twice per forward update.
-    """
-
-    def __init__(self, module: nn.Module, in_key: str, out_key: str) -> None:
-        super().__init__()
-        self.module = module
-        self.in_keys = [in_key]
-        self.out_keys = [out_key]
-
-    def forward(self, tensordict):
-        tensordict.set(self.out_keys[0], self.module(tensordict.get(self.in_keys[0])))
-        return tensordict
+__all__ = ["speed_components", "make_actor", "with_exploration", "make_adam", "Agent", "make_forward_agent", "make_reset_agent", "make_trigger", "lnt_batch"]
 
 
-class FusedSoftUpdate(SoftUpdate):
-    """torchrl's :class:`~torchrl.objectives.SoftUpdate` (``target <- (1 - tau) target + tau source``)
-    with all target tensors moved by one ``torch._foreach_lerp_`` instead of one ``lerp_`` each
-    (0.23 ms -> 0.03 ms per step for the forward agent on the 2-core machines)."""
-
-    def step(self) -> None:
-        if not self.initialized:
-            return super().step()  # raises torchrl's message
-        pairs = self.__dict__.get("_fused_pairs")
-        if pairs is None:
-            sources, targets = [], []
-            for key, source in self._sources.items(True, True):
-                key = (key,) if isinstance(key, str) else key
-                sources.append(source)
-                targets.append(self._targets.get(("target_" + key[0], *key[1:])))
-            pairs = self.__dict__["_fused_pairs"] = (sources, targets)
-        with torch.no_grad():
-            torch._foreach_lerp_(pairs[1], pairs[0], 1.0 - self.eps)
+def speed_components(cfg: DictConfig) -> accel.Components:
+    """The fast classes (``speed.accelerate: true``, the default) or the plain reference ones."""
+    return accel.components(bool(OmegaConf.select(cfg, "speed.accelerate", default=True)))
 
 
-def make_actor(obs_dim: int, action_spec, hidden_sizes) -> TensorDictSequential:
+def make_actor(obs_dim: int, action_spec, hidden_sizes, parts: accel.Components | None = None) -> TensorDictSequential:
     """The paper's policy: a 400-300 ReLU MLP, Xavier-uniform weights and zero biases, tanh onto the action box."""
     layers, width = [], obs_dim
     for size in hidden_sizes:
@@ -71,7 +35,7 @@ def make_actor(obs_dim: int, action_spec, hidden_sizes) -> TensorDictSequential:
             nn.init.xavier_uniform_(layer.weight)
             nn.init.zeros_(layer.bias)
     return TensorDictSequential(
-        TensorModule(net, "observation", "action_preactivation"),
+        (parts or accel.components()).tensor_module(net, "observation", "action_preactivation"),
         TanhModule(["action_preactivation"], ["action"], spec=action_spec),
     )
 
@@ -85,9 +49,9 @@ def with_exploration(actor, action_spec, cfg: DictConfig) -> TensorDictSequentia
 
 
 def make_adam(cfg: DictConfig, groups: list[dict]) -> torch.optim.Optimizer:
-    """Adam over parameter groups; with ``speed.fused_adam`` the fused kernels (one pass over all
-    parameters, the same update rule) where this torch supports them for these parameters."""
-    fused = bool(OmegaConf.select(cfg, "speed.fused_adam", default=False))
+    """Adam over parameter groups; with ``speed.fused_adam`` (and ``speed.accelerate``) the fused kernels
+    (one pass over all parameters, the same update rule) where this torch supports them for these parameters."""
+    fused = bool(OmegaConf.select(cfg, "speed.fused_adam", default=False)) and speed_components(cfg).accelerated
     if fused:
         try:
             return torch.optim.Adam(groups, fused=True)
@@ -107,31 +71,33 @@ class Agent:
     model: Any  # the critic or classifier ensemble
 
 
-def make_forward_agent(cfg: DictConfig, obs_dim: int, action_spec, loss_class: type = DirectDDPGLoss) -> Agent:
+def make_forward_agent(cfg: DictConfig, obs_dim: int, action_spec, loss_class: type | None = None) -> Agent:
     """DDPG with the paper's critic layout (action joined after the first hidden layer).
 
-    ``loss_class``: the recipe's :class:`~torchrl_reset.DirectDDPGLoss`, or torchrl's ``DDPGLoss``
-    (the same losses; the benchmarks compare the two)."""
+    ``loss_class``: by default the accelerator's :class:`~torchrl_reset.accel.DirectDDPGLoss` (or torchrl's
+    ``DDPGLoss`` with ``speed.accelerate=false``); the benchmarks pass either to compare the two."""
+    parts = speed_components(cfg)
     act_dim = action_spec.shape[-1]
-    actor = make_actor(obs_dim, action_spec, cfg.hidden_sizes)
-    critic = EnsembleValueOperator(
+    actor = make_actor(obs_dim, action_spec, cfg.hidden_sizes, parts)
+    critic = parts.ensemble(
         obs_dim, act_dim, num_members=1, hidden_sizes=tuple(cfg.hidden_sizes), prior_scale=0.0, out_keys=["state_action_value"]
     )
-    loss = loss_class(actor, critic, delay_actor=True, delay_value=True)
+    loss = (loss_class or parts.ddpg_loss)(actor, critic, delay_actor=True, delay_value=True)
     loss.make_value_estimator(gamma=cfg.gamma)
     optimizer = make_adam(cfg, [
         {"params": list(loss.actor_network_params.values(True, True)), "lr": cfg.forward.actor_lr},
         {"params": list(loss.value_network_params.values(True, True)), "lr": cfg.forward.critic_lr},
     ])
-    return Agent(actor, loss, optimizer, FusedSoftUpdate(loss, tau=cfg.tau), critic)
+    return Agent(actor, loss, optimizer, parts.soft_update(loss, tau=cfg.tau), critic)
 
 
 def make_reset_agent(cfg: DictConfig, obs_dim: int, action_spec) -> Agent:
     """``ours``: RCE on a classifier ensemble with priors; ``lnt``/``lnt_sparse``: DDPG on a Q ensemble."""
+    parts = speed_components(cfg)
     act_dim = action_spec.shape[-1]
-    actor = make_actor(obs_dim, action_spec, cfg.hidden_sizes)
+    actor = make_actor(obs_dim, action_spec, cfg.hidden_sizes, parts)
     if cfg.algo.name == "ours":
-        model = EnsembleValueOperator(
+        model = parts.ensemble(
             obs_dim, act_dim, num_members=cfg.algo.num_members, hidden_sizes=tuple(cfg.hidden_sizes),
             prior_scale=cfg.algo.prior_scale,
         )
@@ -139,18 +105,18 @@ def make_reset_agent(cfg: DictConfig, obs_dim: int, action_spec) -> Agent:
         if bias is not None:  # not the paper's: a pessimistic start, before the targets copy the networks
             with torch.no_grad():
                 getattr(model, f"bias_{model.num_layers - 1}").fill_(float(bias))
-        loss = RCELoss(actor, model, gamma=cfg.gamma, n_steps=cfg.algo.n_steps,
+        loss = parts.rce_loss(actor, model, gamma=cfg.gamma, n_steps=cfg.algo.n_steps,
                        clip_target_values=bool(OmegaConf.select(cfg, "algo.clip_target_values", default=False)))
         optimizer = make_adam(cfg, [
             {"params": list(actor.parameters()), "lr": cfg.reset.actor_lr},
             {"params": list(model.parameters()), "lr": cfg.reset.critic_lr},
         ])
     else:
-        model = EnsembleValueOperator(
+        model = parts.ensemble(
             obs_dim, act_dim, num_members=cfg.algo.num_members, hidden_sizes=tuple(cfg.hidden_sizes),
             prior_scale=cfg.algo.prior_scale, out_keys=["state_action_value"],
         )
-        loss = DirectDDPGLoss(actor, model, delay_actor=True, delay_value=True)
+        loss = parts.ddpg_loss(actor, model, delay_actor=True, delay_value=True)
         loss.set_keys(reward="lnt_reward")
         loss.make_value_estimator(gamma=cfg.gamma)
         optimizer = make_adam(cfg, [
@@ -158,7 +124,7 @@ def make_reset_agent(cfg: DictConfig, obs_dim: int, action_spec) -> Agent:
             {"params": list(loss.value_network_params.values(True, True)), "lr": cfg.reset.critic_lr},
         ])
     tau = OmegaConf.select(cfg, "reset.tau", default=None)
-    return Agent(actor, loss, optimizer, FusedSoftUpdate(loss, tau=cfg.tau if tau is None else float(tau)), model)
+    return Agent(actor, loss, optimizer, parts.soft_update(loss, tau=cfg.tau if tau is None else float(tau)), model)
 
 
 def make_trigger(cfg: DictConfig, reset_agent: Agent) -> ResetTriggerTransform:

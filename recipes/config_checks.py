@@ -7,7 +7,7 @@ from pathlib import Path
 
 from omegaconf import DictConfig, OmegaConf
 
-from cpu_speed import MATMUL_PRECISIONS
+from torchrl_reset.accel import MATMUL_PRECISIONS
 from run_files import Checkpoints
 from torchrl_reset_envs import TASKS
 

@@ -13,7 +13,7 @@ import math
 import torch
 from tensordict import TensorDict
 
-from torchrl_reset import success_probability
+from torchrl_reset import reduce_members, success_probability
 
 DIAGNOSTIC_FIELDS = [
     "frames", "trigger_score_mean", "trigger_score_min", "trigger_below_share", "trigger_scored_steps",
@@ -71,8 +71,8 @@ def probe_classifier(algo: str, model, reset_actor, examples, forward_rb, reset_
             return torch.sigmoid(values), success_probability(values)
         return torch.full_like(values, math.nan), values
 
-    def reduce(p: torch.Tensor) -> torch.Tensor:
-        return p.mean(-1) if algo == "ours" else p.amin(-1)
+    def reduce(p: torch.Tensor) -> torch.Tensor:  # as the trigger reduces its members
+        return reduce_members(p, "mean" if algo == "ours" else "min")
 
     if len(examples):
         sample = examples.sample(reset_rb.batch_size if len(reset_rb) else 256)

@@ -4,13 +4,19 @@ from __future__ import annotations
 import csv
 import json
 import os
+import random
 import shutil
+import signal
 import subprocess
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Callable
 
-__all__ = ["RunFolderBusy", "run_folder_lock", "code_version", "Checkpoints", "success_rate_by_quarter", "CsvTable"]
+import numpy as np
+import torch
+
+__all__ = ["RunFolderBusy", "run_folder_lock", "code_version", "Checkpoints", "TrainingState", "stop_on_sigterm",
+           "success_rate_by_quarter", "CsvTable"]
 
 
 def code_version() -> dict:
@@ -68,6 +74,75 @@ class Checkpoints:
         for old in sorted(self.root.glob("step_*"))[: -self.keep]:
             shutil.rmtree(old, ignore_errors=True)
         return final
+
+
+class TrainingState:
+    """Everything a run needs to go on exactly where it stopped: both agents (losses with their target
+    copies, optimizers), the collector (its episode, counters and success examples), both replay
+    buffers, the run's history and every random stream."""
+
+    def __init__(self, checkpoints: Checkpoints, cfg, forward, reset, collector, forward_rb, reset_rb) -> None:
+        self.checkpoints, self.cfg = checkpoints, cfg
+        self.forward, self.reset, self.collector = forward, reset, collector
+        self.buffers = {"forward_buffer": forward_rb, "reset_buffer": reset_rb}
+        self.history: dict = {}
+
+    def save(self) -> Path:
+        """A complete checkpoint at the collector's step (crash-safe: see :class:`Checkpoints`)."""
+        cfg = self.cfg
+        meta = {"task": cfg.task.name, "algo": cfg.algo.name, "seed": int(cfg.seed), "frames": self.collector.frames}
+        return self.checkpoints.save(self.collector.frames, self._write, meta)
+
+    def _write(self, folder: Path) -> None:
+        torch.save(
+            {
+                "forward_loss": self.forward.loss.state_dict(),
+                "reset_loss": self.reset.loss.state_dict(),
+                "forward_optimizer": self.forward.optimizer.state_dict(),
+                "reset_optimizer": self.reset.optimizer.state_dict(),
+                "collector": self.collector.state_dict(),
+                "history": self.history,
+                "rng": {"torch": torch.get_rng_state(), "numpy": np.random.get_state(), "python": random.getstate()},
+            },
+            folder / "state.pt",
+        )
+        for name, rb in self.buffers.items():
+            if len(rb):  # torchrl cannot dump a buffer that never received data
+                rb.dumps(folder / name)
+
+    def load(self) -> Path:
+        """Loads the latest checkpoint into the agents, collector and buffers; sets ``history``."""
+        folder = self.checkpoints.latest()
+        state = torch.load(folder / "state.pt", weights_only=False)
+        self.forward.loss.load_state_dict(state["forward_loss"])
+        self.reset.loss.load_state_dict(state["reset_loss"])
+        self.forward.optimizer.load_state_dict(state["forward_optimizer"])
+        self.reset.optimizer.load_state_dict(state["reset_optimizer"])
+        for name, rb in self.buffers.items():
+            if (folder / name).exists():
+                rb.loads(folder / name)
+        self.collector.load_state_dict(state["collector"])
+        self.history = state["history"]
+        torch.set_rng_state(state["rng"]["torch"])
+        np.random.set_state(state["rng"]["numpy"])
+        random.setstate(state["rng"]["python"])
+        return folder
+
+
+@contextmanager
+def stop_on_sigterm():
+    """Yields a list that gets an entry when SIGTERM arrives (a cluster's pre-emption, ``kill``), so that
+    the loop can stop after its current step with a checkpoint; off the main thread, signals are left alone."""
+    requested: list[int] = []
+    try:
+        previous = signal.signal(signal.SIGTERM, lambda signum, frame: requested.append(signum))
+    except ValueError:  # not the main thread
+        previous = None
+    try:
+        yield requested
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
 
 
 def _fsync_dir(path: Path) -> None:

@@ -9,7 +9,8 @@ from torchrl.modules import ValueOperator
 from torchrl.objectives import DDPGLoss, SoftUpdate
 from torchrl.objectives.utils import ValueEstimators
 
-from torchrl_reset import DirectDDPGLoss, EnsembleValueOperator
+from torchrl_reset import EnsembleValueOperator
+from torchrl_reset.accel import DirectDDPGLoss
 
 
 class LinearCritic(torch.nn.Module):

@@ -8,6 +8,9 @@ import torch
 from tensordict import TensorDict
 
 from torchrl_reset import EnsembleValueOperator, reduce_members, success_classifier, success_probability
+from torchrl_reset.accel import FastEnsembleValueOperator
+
+BOTH = pytest.mark.parametrize("cls", [EnsembleValueOperator, FastEnsembleValueOperator])
 
 
 def member_reference(ens: EnsembleValueOperator, i: int, obs: torch.Tensor, act: torch.Tensor, prefix: str = ""):
@@ -18,10 +21,13 @@ def member_reference(ens: EnsembleValueOperator, i: int, obs: torch.Tensor, act:
     return (h @ w("weight_2") + w("bias_2")).squeeze(-1)
 
 
-def test_every_member_matches_a_plain_per_member_network_plus_beta_times_its_prior():
-    ens = EnsembleValueOperator(5, 2, num_members=4, hidden_sizes=(8, 6), prior_scale=3.0)
+@BOTH
+@pytest.mark.parametrize("grad", [True, False])
+def test_every_member_matches_a_plain_per_member_network_plus_beta_times_its_prior(cls, grad):
+    ens = cls(5, 2, num_members=4, hidden_sizes=(8, 6), prior_scale=3.0)
     obs, act = torch.randn(7, 5), torch.rand(7, 2)
-    logits = ens.logits(obs, act)
+    with torch.set_grad_enabled(grad):
+        logits = ens.logits(obs, act)
     assert logits.shape == (7, 4)
     for i in range(4):
         expected = member_reference(ens, i, obs, act) + 3.0 * member_reference(ens, i, obs, act, "prior_")
@@ -29,7 +35,7 @@ def test_every_member_matches_a_plain_per_member_network_plus_beta_times_its_pri
 
 
 def test_grad_free_fused_path_equals_the_separate_prior_path():
-    ens = EnsembleValueOperator(5, 2, num_members=3, hidden_sizes=(8, 6))
+    ens = FastEnsembleValueOperator(5, 2, num_members=3, hidden_sizes=(8, 6))
     obs, act = torch.randn(9, 5), torch.rand(9, 2)
     with torch.no_grad():
         fused = ens.logits(obs, act)
@@ -125,7 +131,7 @@ def _reference_logits(ens: EnsembleValueOperator, obs: torch.Tensor, act: torch.
 
 def test_kept_prior_part_of_slotted_states_gives_the_same_logits_and_follows_changed_states_and_priors():
     torch.manual_seed(0)
-    ens = EnsembleValueOperator(3, 2, num_members=3, hidden_sizes=(8, 6), dtype=torch.float64)
+    ens = FastEnsembleValueOperator(3, 2, num_members=3, hidden_sizes=(8, 6), dtype=torch.float64)
     pool = torch.randn(5, 3, dtype=torch.float64)
     replay_obs, replay_act = torch.randn(4, 3, dtype=torch.float64), torch.rand(4, 2, dtype=torch.float64)
     policy_act = torch.rand(4, 2, dtype=torch.float64)

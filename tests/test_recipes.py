@@ -23,7 +23,7 @@ import train  # noqa: E402
 import train_utils  # noqa: E402
 from train_utils import ALGOS, ConfigError  # noqa: E402
 
-from torchrl_reset import EnsembleValueOperator  # noqa: E402
+from torchrl_reset import EnsembleValueOperator, accel  # noqa: E402
 from torchrl_reset_envs import TASKS  # noqa: E402
 
 TINY = [
@@ -76,6 +76,23 @@ def test_compiled_losses_train_like_the_eager_ones(tmp_path):
     a, b = rows(tmp_path / "eager" / "progress.csv")[-1], rows(tmp_path / "compiled" / "progress.csv")[-1]
     for key in ("loss_forward_critic", "loss_reset_critic", "loss_reset_actor"):
         assert float(a[key]) == pytest.approx(float(b[key]), rel=1e-3, abs=1e-5)
+
+
+@pytest.mark.parametrize("algo", ["ours", "lnt"])
+def test_the_plain_reference_path_trains_like_the_accelerator(tmp_path, algo):
+    """speed.accelerate=false: the reference classes, stock Adam and plain float32 products. The same
+    numbers up to float32 rounding, so early in training the same episodes and nearly the same losses."""
+    common = ["task=peg_insertion_insert", f"algo={algo}", "total_steps=200", "eval_every=200", "checkpoint_every=200"]
+    fast = train.train(config(tmp_path / "fast", *common))
+    plain = train.train(config(tmp_path / "plain", *common, "speed.accelerate=false"))
+    assert plain["matmul_precision"] == "ieee"
+    same = ("manual_resets", "triggered_resets", "requested_resets", "reset_episodes", "successful_resets")
+    assert {k: plain[k] for k in same} == {k: fast[k] for k in same}
+    a, b = rows(tmp_path / "fast" / "progress.csv")[-1], rows(tmp_path / "plain" / "progress.csv")[-1]
+    losses = [key for key in a if key.startswith("loss_") and a[key] not in ("", "nan")]
+    assert len(losses) >= 2
+    for key in losses:
+        assert float(a[key]) == pytest.approx(float(b[key]), rel=1e-3, abs=1e-5), key
 
 
 @pytest.mark.parametrize("algo", ["ours", "lnt"])
@@ -279,7 +296,7 @@ def test_fused_soft_update_moves_every_target_by_tau_and_tensor_module_writes_it
     critic = EnsembleValueOperator(3, 2, num_members=1, hidden_sizes=(8, 8), prior_scale=0.0,
                                    out_keys=["state_action_value"])
     loss = DDPGLoss(actor, critic, delay_actor=True, delay_value=True)
-    updater = train_utils.FusedSoftUpdate(loss, tau=0.25)
+    updater = accel.FusedSoftUpdate(loss, tau=0.25)
     sources = [*loss.actor_network_params.values(True, True), *loss.value_network_params.values(True, True)]
     targets = [*loss.target_actor_network_params.values(True, True), *loss.target_value_network_params.values(True, True)]
     trained = [p.requires_grad for p in sources]  # the tanh bounds are buffers: no target update
@@ -299,17 +316,17 @@ def test_matmul_precision_auto_keeps_float32_accuracy_and_products_restore_the_s
     gen = torch.Generator().manual_seed(3)
     a, b = torch.randn(128, 400, generator=gen), torch.randn(400, 300, generator=gen)
     exact = a.double() @ b.double()
-    chosen = train_utils.choose_matmul_precision("auto")
+    chosen = accel.choose_matmul_precision("auto")
     assert chosen in ("ieee", "bf16") and backend.fp32_precision == before
-    with train_utils.matmul_products(chosen):
+    with accel.matmul_products(chosen):
         assert backend.fp32_precision == chosen
         # float32 keeps 24 bits: a product of 400 terms is good to well under 1e-5 of its largest
         # value; bf16 arithmetic (8 bits) would be off by about 1e-3
         assert float(((a @ b).double() - exact).abs().max() / exact.abs().max()) < 1e-5
     assert backend.fp32_precision == before
-    assert train_utils.choose_matmul_precision("ieee") == "ieee"
+    assert accel.choose_matmul_precision("ieee") == "ieee"
     with pytest.raises(ValueError, match="matmul precision"):
-        train_utils.choose_matmul_precision("fp16")
+        accel.choose_matmul_precision("fp16")
 
 
 def test_video_plays_the_evaluation_of_the_latest_checkpoint_into_a_gif(tmp_path):

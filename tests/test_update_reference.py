@@ -4,7 +4,8 @@ The plain version loops over members with one small network per member, evaluate
 separately, runs the actor loss on its own pass through the classifier, steps torch's default
 (unfused) Adam and applies the soft target update by hand. Several whole updates (loss, backward,
 optimizer step, target step) must give the same losses and the same parameters as
-``RCELoss`` + ``EnsembleValueOperator`` + fused Adam + ``SoftUpdate``.
+``RCELoss`` + ``EnsembleValueOperator`` (the reference path) and ``FastRCELoss`` +
+``FastEnsembleValueOperator`` (the accelerator), with fused Adam and ``SoftUpdate``.
 """
 from __future__ import annotations
 
@@ -18,7 +19,8 @@ from torch import nn
 from torchrl.objectives import SoftUpdate
 
 from torchrl_reset import EnsembleValueOperator, RCELoss
-from torchrl_reset import ensemble as ensemble_module
+from torchrl_reset.accel import FastEnsembleValueOperator, FastRCELoss
+from torchrl_reset.accel import ensemble as fast_ensemble
 
 OBS, ACT, K, HIDDEN, BATCH = 3, 2, 3, (16, 12), 64
 GAMMA, N_STEPS, BETA, TAU = 0.99, 4, 3.0, 0.05
@@ -83,16 +85,19 @@ def make_batch(gen: torch.Generator, example_pool: torch.Tensor | None = None) -
     return batch
 
 
-@pytest.mark.parametrize("threads, examples_with_slots", [(1, False), (2, False), (2, True)])
-def test_optimized_update_matches_a_plain_per_member_reference_over_several_updates(threads, examples_with_slots):
+@pytest.mark.parametrize("threads, examples_with_slots, fast", [
+    (1, False, False), (2, True, False), (1, False, True), (2, False, True), (2, True, True)])
+def test_update_matches_a_plain_per_member_reference_over_several_updates(threads, examples_with_slots, fast):
+    """The library's reference path and its accelerator, each against the per-member loops above."""
+    ensemble_cls, loss_cls = (FastEnsembleValueOperator, FastRCELoss) if fast else (EnsembleValueOperator, RCELoss)
     old_threads = torch.get_num_threads()
     torch.set_num_threads(threads)
     try:
-        if threads == 2:  # K = 3 members on 2 threads: the classifier's rows are cut in blocks
-            assert ensemble_module._row_split(K, 2 * BATCH, torch.device("cpu")) == 2
+        if threads == 2 and fast:  # K = 3 members on 2 threads: the classifier's rows are cut in blocks
+            assert fast_ensemble._row_split(K, 2 * BATCH, torch.device("cpu")) == 2
         torch.manual_seed(0)
         net = nn.Sequential(nn.Linear(OBS, 8), nn.ReLU(), nn.Linear(8, ACT), nn.Tanh()).double()
-        ensemble = EnsembleValueOperator(OBS, ACT, num_members=K, hidden_sizes=HIDDEN, prior_scale=BETA, dtype=torch.float64)
+        ensemble = ensemble_cls(OBS, ACT, num_members=K, hidden_sizes=HIDDEN, prior_scale=BETA, dtype=torch.float64)
         with torch.no_grad():  # non-zero biases, so that every term of the update is exercised
             for name, p in ensemble.named_parameters():
                 if name.startswith("bias"):
@@ -103,7 +108,7 @@ def test_optimized_update_matches_a_plain_per_member_reference_over_several_upda
         priors = {n: b.clone() for n, b in ensemble.named_buffers()}
 
         actor = TensorDictModule(net, in_keys=["observation"], out_keys=["action"])
-        loss = RCELoss(actor, ensemble, gamma=GAMMA, n_steps=N_STEPS)
+        loss = loss_cls(actor, ensemble, gamma=GAMMA, n_steps=N_STEPS)
         updater = SoftUpdate(loss, tau=TAU)
         optimizer = torch.optim.Adam([{"params": list(net.parameters()), "lr": 1e-2},
                                       {"params": list(ensemble.parameters()), "lr": 3e-2}], fused=True)
@@ -111,7 +116,7 @@ def test_optimized_update_matches_a_plain_per_member_reference_over_several_upda
                                             {"params": list(params.values()), "lr": 3e-2}], foreach=False)
         gen = torch.Generator().manual_seed(1)
         # 20 example states for 64 rows: later updates read the priors' part of most examples from
-        # the kept copy (EnsembleValueOperator.paired_logits with slots)
+        # the kept copy (FastEnsembleValueOperator.paired_logits with slots)
         pool = torch.randn(20, OBS, generator=gen, dtype=torch.float64) if examples_with_slots else None
         for _ in range(4):
             batch = make_batch(gen, pool)

@@ -1,12 +1,12 @@
-"""Recursive classification of examples (RCE) for the reset agent (method.md section 3)."""
+"""Recursive classification of examples (RCE) for the reset agent (paper Eq. 2-3, method.md section 3)."""
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import torch
 import torch.nn.functional as F
 from tensordict import TensorDict, TensorDictBase, TensorDictParams
-from tensordict.nn import TensorDictModule
+from tensordict.nn import TensorDictModule, TensorDictModuleBase
 from tensordict.utils import NestedKey
 from torchrl.envs.utils import set_exploration_type
 from torchrl.objectives import LossModule
@@ -14,11 +14,30 @@ from torchrl.objectives import LossModule
 from ._validation import check_int
 from .ensemble import EnsembleValueOperator, success_probability
 
-__all__ = ["RCELoss"]
+__all__ = ["RCELoss", "rce_label", "label_weight"]
 
 
 def _as_tuple(key: NestedKey) -> tuple[str, ...]:
     return (key,) if isinstance(key, str) else tuple(key)
+
+
+def _contains(keys, key: NestedKey) -> bool:
+    return _as_tuple(key) in {_as_tuple(k) for k in keys}
+
+
+def rce_label(c: torch.Tensor, discount: float) -> torch.Tensor:
+    """Eq. 2's label ``discount * w / (1 + discount * w)`` with ``w = c / (1 - c)`` (Eq. 1), written with ``c``.
+
+    ``discount = gamma`` for the next state, ``gamma ** n`` for the n-step state.
+    """
+    return discount * c / (1.0 + (discount - 1.0) * c)
+
+
+def label_weight(label: torch.Tensor, gamma: float) -> torch.Tensor:
+    """Eq. 2's replay weight ``1 + gamma * w``, with ``w`` the ratio of the label turned back into a
+    classifier value ``c_y = y / (y + gamma (1 - y))`` clipped to [0, 0.5] (``w = w1`` when n = 1)."""
+    c_y = (label / (label + gamma * (1.0 - label))).clamp(0.0, 0.5)
+    return 1.0 + gamma * c_y / (1.0 - c_y)
 
 
 class RCELoss(LossModule):
@@ -44,7 +63,8 @@ class RCELoss(LossModule):
       the success label 1 is clipped to 0.5 like every label;
     - actor loss: ``-mean_t min_i C_i(s_t, pi(s_t))`` (the classifier value itself, not the ratio).
 
-    Labels and weights carry no gradient; the actor loss reaches only the actor, the classifier
+    This class is the plain reference path, written as the equations;
+    :class:`torchrl_reset.accel.FastRCELoss` computes the same losses faster. Labels and weights carry no gradient; the actor loss reaches only the actor, the classifier
     loss only the trainable classifier parameters (never the priors). Target classifiers are
     updated by torchrl's :class:`~torchrl.objectives.SoftUpdate` (``tau=1e-3`` in the paper).
 
@@ -57,7 +77,14 @@ class RCELoss(LossModule):
     Args:
         actor_network (TensorDictModule): the reset policy, writing the action key (deterministic:
             the loss always runs in deterministic exploration mode).
-        classifier_network (EnsembleValueOperator): the success-classifier ensemble.
+        classifier_network (TensorDictModuleBase): the success-classifier ensemble, such as
+            :class:`~torchrl_reset.EnsembleValueOperator`. The contract: it reads the state entries and
+            the action key (its ``in_keys``) and writes the K members' logits, shaped ``[*batch, K]``,
+            at the ``state_action_logit`` key (one of its ``out_keys``). The loss runs it on its own
+            functional copies of the parameters (live, target and detached), swapped in with
+            ``TensorDict.to_module`` as TorchRL losses do; any module keeping that contract works,
+            for example K stock networks stacked with ``TensorDict.from_modules`` and run with
+            ``torch.vmap`` (``docs/components.md`` shows one with priors).
 
     Keyword Args:
         gamma (float): discount in (0, 1). Defaults to 0.99. RCE's discount lives in the label,
@@ -95,14 +122,16 @@ class RCELoss(LossModule):
 
         Attributes:
             action (NestedKey): the action taken (replay) and written by the actor. Defaults to ``"action"``.
-            state_action_logit (NestedKey): the classifier's per-member logits. Defaults to ``"state_action_logit"``.
+            state_action_logit (NestedKey): the classifier's per-member logits, ``[*batch, K]``; must be one
+                of the classifier's ``out_keys``. Defaults to the classifier's out_key when it has
+                exactly one, else ``"state_action_logit"``.
             next_state (NestedKey): the sub-tensordict holding ``s_{t+1}``. Defaults to ``"next"``.
             nstep_state (NestedKey): the sub-tensordict holding ``s_{t+n}``. Defaults to ``"nstep"``.
             example_state (NestedKey): the sub-tensordict holding the success examples. Defaults to ``"example"``.
             example_index (NestedKey): inside ``example_state``, each example's slot in its buffer
                 (:meth:`InitialStateBuffer.sample <torchrl_reset.InitialStateBuffer.sample>` writes
-                it). Optional: when present, the priors' part of each example is computed once and
-                kept (:meth:`EnsembleValueOperator.paired_logits`). Defaults to ``"index"``.
+                it). Optional, read only by :class:`~torchrl_reset.accel.FastRCELoss`, which then
+                computes the priors' part of each example once and keeps it. Defaults to ``"index"``.
             one_step (NestedKey): optional boolean entry at the root; when it holds True the batch gets
                 the one-step label and needs no ``"nstep"`` entry (the release's fallback while no
                 reset episode has n transitions: :class:`~torchrl_reset.EpisodeWindowSampler`).
@@ -124,14 +153,14 @@ class RCELoss(LossModule):
     actor_network: TensorDictModule
     actor_network_params: TensorDictParams
     target_actor_network_params: TensorDictParams
-    classifier_network: EnsembleValueOperator
+    classifier_network: TensorDictModuleBase
     classifier_network_params: TensorDictParams
     target_classifier_network_params: TensorDictParams
 
     def __init__(
         self,
-        actor_network: TensorDictModule,
-        classifier_network: EnsembleValueOperator,
+        actor_network: TensorDictModuleBase,
+        classifier_network: TensorDictModuleBase,
         *,
         gamma: float = 0.99,
         n_steps: int = 10,
@@ -142,41 +171,48 @@ class RCELoss(LossModule):
         if not (0.0 < gamma < 1.0):
             raise ValueError(f"gamma must lie in (0, 1), got {gamma!r}.")
         check_int("n_steps", n_steps)
-        if not isinstance(classifier_network, EnsembleValueOperator):
-            raise TypeError(
-                f"classifier_network must be an EnsembleValueOperator, got {type(classifier_network).__name__}."
-            )
+        for name, net in (("actor_network", actor_network), ("classifier_network", classifier_network)):
+            if not isinstance(net, TensorDictModuleBase):
+                raise TypeError(
+                    f"{name} must be a tensordict module (with in_keys and out_keys), got {type(net).__name__}."
+                )
         self._tensor_keys = self._AcceptedKeys()
+        if len(classifier_network.out_keys) == 1:
+            self._tensor_keys.state_action_logit = classifier_network.out_keys[0]
         self.gamma = gamma
         self.n_steps = n_steps
         self.clip_target_values = bool(clip_target_values)
-        self._check_networks(actor_network, classifier_network)
+        self._networks = (actor_network, classifier_network)
+        self._check_keys()
         self.convert_to_functional(actor_network, "actor_network")
         self.convert_to_functional(classifier_network, "classifier_network", create_target_params=True)
         self._share_priors_with_target()
 
-    def _check_networks(self, actor, classifier) -> None:
-        action = self.tensor_keys.action
-        if _as_tuple(classifier.in_keys[-1]) != _as_tuple(action):
+    def _check_keys(self) -> None:
+        """The keys agree with the networks: checked at construction and after every :meth:`set_keys`."""
+        actor, classifier = self._networks
+        keys = self.tensor_keys
+        if not _contains(actor.out_keys, keys.action):
+            raise ValueError(f"the actor must write the action key {keys.action!r}; its out_keys are {actor.out_keys}.")
+        if not _contains(classifier.in_keys, keys.action):
+            raise ValueError(f"the classifier must read the action key {keys.action!r}; its in_keys are {classifier.in_keys}.")
+        if not _contains(classifier.out_keys, keys.state_action_logit):
             raise ValueError(
-                f"the classifier's last in_key must be the action key {action!r}, got {classifier.in_keys[-1]!r}."
+                f"state_action_logit is {keys.state_action_logit!r}, but the classifier writes {classifier.out_keys}; "
+                "name one of those (set_keys(state_action_logit=...))."
             )
-        if _as_tuple(action) not in {_as_tuple(k) for k in actor.out_keys}:
-            raise ValueError(f"the actor must write the action key {action!r}; its out_keys are {actor.out_keys}.")
-        if _as_tuple(classifier.out_keys[0]) != _as_tuple(self.tensor_keys.state_action_logit):
-            self.tensor_keys.state_action_logit = classifier.out_keys[0]
-        keys = []
-        for key in [*actor.in_keys, *classifier.in_keys[:-1]]:
-            if _as_tuple(key) not in {_as_tuple(k) for k in keys}:
-                keys.append(key)
-        self._state_keys = keys
+        state_keys = []
+        for key in [*actor.in_keys, *classifier.in_keys]:
+            if not _contains([keys.action], key) and not _contains(state_keys, key):
+                state_keys.append(key)
+        self._state_keys = state_keys
         self._actor_in_keys = list(actor.in_keys)
-        self._classifier_state_keys = list(classifier.in_keys[:-1])
 
     def _share_priors_with_target(self) -> None:
-        # The priors are buffers: the target copy made by convert_to_functional would be a clone.
-        # Point it at the same tensors so that "the target uses the same prior g_i" holds by construction.
-        if not self.classifier_network.has_prior:
+        # EnsembleValueOperator's priors are buffers: the target copy made by convert_to_functional
+        # would be a clone. Point it at the same tensors so that "the target uses the same prior g_i"
+        # holds by construction.
+        if not (isinstance(self._networks[1], EnsembleValueOperator) and self._networks[1].has_prior):
             return
         source = self.classifier_network_params
         # read the module directly: the attribute access would warn that no target updater exists yet
@@ -191,9 +227,21 @@ class RCELoss(LossModule):
         if unlocked:
             target.lock_()
 
+    def set_keys(self, **kwargs) -> None:
+        """Renames tensordict keys (torchrl's :meth:`~torchrl.objectives.LossModule.set_keys`); keys that
+        disagree with the networks raise ``ValueError`` and leave the loss's keys as they were."""
+        before = replace(self._tensor_keys)
+        try:
+            super().set_keys(**kwargs)
+        except ValueError:
+            self._tensor_keys = before
+            raise
+
     def _forward_value_estimator_keys(self, **kwargs) -> None:
-        # RCE has no value estimator: its bootstrapped label is computed in forward.
-        pass
+        # RCE has no value estimator (its bootstrapped label is computed in forward); set_keys lands
+        # here after renaming, so the new keys are checked against the networks.
+        if hasattr(self, "_networks"):
+            self._check_keys()
 
     def make_value_estimator(self, *args, **kwargs):
         raise NotImplementedError("RCELoss computes its own label (method.md section 3); it takes no value estimator.")
@@ -202,6 +250,8 @@ class RCELoss(LossModule):
     def state_keys(self) -> list[NestedKey]:
         """The state entries read at the root and in the next, n-step and example sub-tensordicts."""
         return list(self._state_keys)
+
+    # -- reading the batch ------------------------------------------------------------------------
 
     def _require(self, tensordict: TensorDictBase, sub: NestedKey | None, what: str) -> TensorDictBase:
         data = tensordict if sub is None else tensordict.get(sub, None)
@@ -216,17 +266,17 @@ class RCELoss(LossModule):
             raise KeyError(f"RCELoss needs the state key(s) {missing} under {where} ({what}).")
         return data.select(*self._state_keys)
 
-    def _act(self, data: TensorDictBase) -> torch.Tensor:
-        with self.actor_network_params.to_module(self.actor_network):
-            return self.actor_network(data.select(*self._actor_in_keys)).get(self.tensor_keys.action)
-
-    def labels(self, tensordict: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor]:
-        """The shared label ``y`` and weight ``1 + gamma * w_y`` for each transition, without gradient."""
+    def _replay(self, tensordict: TensorDictBase) -> TensorDictBase:
         replay = tensordict.reshape(-1) if tensordict.batch_dims != 1 else tensordict
-        # the actions of the current policy without noise, as in forward (which torchrl runs deterministically)
-        with torch.no_grad(), set_exploration_type(self.deterministic_sampling_mode):
-            states = self._target_states(replay)
-            return self._labels_from(self.classifier_network.observation_from(states), self._act(states), replay.shape[0])
+        if replay.shape[0] == 0:
+            raise ValueError("RCELoss got an empty batch.")
+        return replay
+
+    def _uses_nstep(self, replay: TensorDictBase) -> bool:
+        if self.n_steps == 1:
+            return False
+        one_step = replay.get(self.tensor_keys.one_step, None)
+        return one_step is None or not bool(one_step.all())
 
     def _target_states(self, replay: TensorDictBase) -> TensorDictBase:
         """``s_{t+1}`` (and ``s_{t+n}`` when n > 1) stacked, for one actor and one target pass."""
@@ -235,78 +285,82 @@ class RCELoss(LossModule):
             states.append(self._require(replay, self.tensor_keys.nstep_state, "s_{t+n}"))
         return torch.cat(states, 0)
 
-    def _uses_nstep(self, replay: TensorDictBase) -> bool:
-        if self.n_steps == 1:
-            return False
-        one_step = replay.get(self.tensor_keys.one_step, None)
-        return one_step is None or not bool(one_step.all())
+    # -- the networks through their keys ----------------------------------------------------------
 
-    def _labels_from(self, observation: torch.Tensor, action: torch.Tensor, batch: int) -> tuple[torch.Tensor, torch.Tensor]:
-        """Labels and weights from ``s_{t+1}`` (and ``s_{t+n}``) stacked, with the policy's actions there."""
-        gamma = self.gamma
-        logits = self.classifier_network.logits(observation, action, self.target_classifier_network_params)
-        value = torch.sigmoid(logits)
+    def _act(self, states: TensorDictBase) -> torch.Tensor:
+        """``pi(s)``: the reset policy on its live parameters."""
+        with self.actor_network_params.to_module(self.actor_network):
+            return self.actor_network(states.select(*self._actor_in_keys)).get(self.tensor_keys.action)
+
+    def _classify(self, states: TensorDictBase, action: torch.Tensor, params: TensorDictBase) -> torch.Tensor:
+        """The members' logits ``[B, K]`` of ``(states, action)`` with the classifier's parameters ``params``."""
+        pairs = states.clone(False).set(self.tensor_keys.action, action)
+        with params.to_module(self.classifier_network):
+            logits = self.classifier_network(pairs).get(self.tensor_keys.state_action_logit)
+        if logits.dim() != 2 or logits.shape[0] != states.shape[0]:
+            raise ValueError(
+                f"the classifier must write its members' logits as [batch, K] at {self.tensor_keys.state_action_logit!r}; "
+                f"got shape {tuple(logits.shape)} for a batch of {states.shape[0]}."
+            )
+        return logits
+
+    # -- the loss -----------------------------------------------------------------------------------
+
+    def labels(self, tensordict: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor]:
+        """The shared label ``y`` and weight ``1 + gamma * w_y`` for each transition, without gradient."""
+        replay = self._replay(tensordict)
+        # the actions of the current policy without noise, as in forward (which torchrl runs deterministically)
+        with torch.no_grad(), set_exploration_type(self.deterministic_sampling_mode):
+            return self._label_and_weight(replay)
+
+    def _label_and_weight(self, replay: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor]:
+        batch, gamma = replay.shape[0], self.gamma
+        targets = self._target_states(replay)  # s_{t+1} rows, then s_{t+n} rows
+        # Eq. 1: C'_i at the next states with the policy's actions, from the target classifiers
+        value = torch.sigmoid(self._classify(targets, self._act(targets), self.target_classifier_network_params))
         if self.clip_target_values:
             value = value.clamp(0.0, 0.5)
-
-        def label_of(c: torch.Tensor, discount: float) -> torch.Tensor:
-            return discount * c / (1.0 + (discount - 1.0) * c)  # = discount w / (1 + discount w), w = c / (1 - c)
-
-        label = label_of(value[:batch], gamma)
-        if value.shape[0] > batch:  # the n-step part
-            label = 0.5 * (label + label_of(value[batch:], gamma**self.n_steps))
-        label = label.amin(-1).clamp(max=0.5)
-        classifier_value = (label / (label + gamma * (1.0 - label))).clamp(0.0, 0.5)
-        weight = 1.0 + gamma * classifier_value / (1.0 - classifier_value)
-        return label, weight
+        label = rce_label(value[:batch], gamma)  # Eq. 2's label from w^(t)
+        if value.shape[0] > batch:  # "Implementation details": y = (one-step label + n-step label) / 2
+            label = 0.5 * (label + rce_label(value[batch:], gamma**self.n_steps))
+        label = label.amin(-1).clamp(max=0.5)  # the ensemble minimum, shared by all members
+        return label, label_weight(label, gamma)
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        keys = self.tensor_keys
-        replay = tensordict.reshape(-1) if tensordict.batch_dims != 1 else tensordict
+        keys, gamma = self.tensor_keys, self.gamma
+        replay = self._replay(tensordict)
         batch = replay.shape[0]
-        if batch == 0:
-            raise ValueError("RCELoss got an empty batch.")
         states = self._require(replay, None, "s_t")
         action = replay.get(keys.action, None)
         if action is None:
             raise KeyError(f"RCELoss needs the action key {keys.action!r} at the root of its input.")
         examples = self._require(replay, keys.example_state, "success examples s*")
-        slots = replay.get(_as_tuple(keys.example_state) + _as_tuple(keys.example_index), None)
         if examples.shape[0] != batch:
             raise ValueError(f"RCELoss needs one success example per replay row: got {examples.shape[0]} for {batch}.")
-        gamma = self.gamma
-        net = self.classifier_network
 
         with torch.no_grad():
-            # One actor pass for s_{t+1}, s_{t+n} and s*; one target-classifier pass for the first two.
-            targets = self._target_states(replay)
-            num_targets = targets.shape[0]
-            acting = torch.cat([targets, examples], 0)
-            acting_obs = net.observation_from(acting)
-            acting_actions = self._act(acting)
-            label, weight = self._labels_from(acting_obs[:num_targets], acting_actions[:num_targets], batch)
+            label, weight = self._label_and_weight(replay)
+            example_action = self._act(examples)  # a ~ pi(s*) in Eq. 2's first term
 
-        # Classifier loss on the examples and the replay rows; actor loss on (s_t, pi(s_t)). The
-        # classifier's state part is computed once for both (EnsembleValueOperator.paired_logits).
-        observation = torch.cat([acting_obs[num_targets:], net.observation_from(states)], 0)
-        classifier_action = torch.cat([acting_actions[num_targets:], action.to(acting_actions.dtype)], 0)
-        logits, actor_logits = net.paired_logits(
-            observation, classifier_action, self._act(states), batch, self.classifier_network_params, slots=slots
-        )
-        example_logits, replay_logits = logits[:batch], logits[batch:]
+        # Eq. 2, per member i, summed over members: (1 - gamma) CE(C_i(s*, pi(s*)); 1) with the success
+        # label clipped to 0.5 like every label, plus (1 + gamma w) CE(C_i(s_t, a_t); y)
+        example_logits = self._classify(examples, example_action, self.classifier_network_params)
+        replay_logits = self._classify(states, action.to(example_action.dtype), self.classifier_network_params)
         loss_examples = (1.0 - gamma) * F.binary_cross_entropy_with_logits(
             example_logits, torch.full_like(example_logits, 0.5), reduction="none"
         ).mean(0)
         loss_replay = F.binary_cross_entropy_with_logits(
-            replay_logits,
-            label.unsqueeze(-1).expand_as(replay_logits),
-            weight=weight.unsqueeze(-1),
-            reduction="none",
+            replay_logits, label.unsqueeze(-1).expand_as(replay_logits), weight=weight.unsqueeze(-1), reduction="none"
         ).mean(0)
         loss_classifier = (loss_examples + loss_replay).sum()
-        # Actor loss: maximise the ensemble minimum of C(s, pi(s)); classifier parameters held out.
-        loss_actor = -torch.sigmoid(actor_logits).amin(-1).mean()
 
+        # the actor: gradient ascent on the ensemble minimum of C_i(s, pi(s)), the classifier held fixed
+        actor_logits = self._classify(states, self._act(states), self.classifier_network_params.detach())
+        loss_actor = -torch.sigmoid(actor_logits).amin(-1).mean()
+        return self._output(loss_classifier, loss_actor, label, weight, replay_logits, example_logits)
+
+    @staticmethod
+    def _output(loss_classifier, loss_actor, label, weight, replay_logits, example_logits) -> TensorDict:
         with torch.no_grad():
             out = TensorDict(
                 {
@@ -319,11 +373,10 @@ class RCELoss(LossModule):
                 },
                 batch_size=[],
             )
-        # the loss entries must keep their graph
+        # the loss entries keep their graph
         out.set("loss_classifier", loss_classifier)
         out.set("loss_actor", loss_actor)
         return out
 
     def extra_repr(self) -> str:
-        return f"gamma={self.gamma}, n_steps={self.n_steps}, clip_target_values={self.clip_target_values}, num_members={self.classifier_network.num_members}"
-
+        return f"gamma={self.gamma}, n_steps={self.n_steps}, clip_target_values={self.clip_target_values}"

@@ -49,7 +49,7 @@ class DirectDDPGLoss(DDPGLoss):
         >>> from tensordict import TensorDict
         >>> from tensordict.nn import TensorDictModule
         >>> from torchrl.modules import ValueOperator
-        >>> from torchrl_reset import DirectDDPGLoss
+        >>> from torchrl_reset.accel import DirectDDPGLoss
         >>> actor = TensorDictModule(torch.nn.Linear(3, 2), ["observation"], ["action"])
         >>> class Critic(torch.nn.Module):
         ...     def __init__(self):

@@ -1,4 +1,4 @@
-"""CPU speed settings of the recipe (``speed.*``): freed memory kept in the process, and how the
+"""CPU settings for speed (the recipes' ``speed.*``): freed memory kept in the process, and how the
 updates' float32 matrix products run."""
 from __future__ import annotations
 

@@ -1,0 +1,113 @@
+"""The recipe's collector and learner: Algorithm 1's "save transition and update" for both agents.
+
+``make_collector`` builds the :class:`~torchrl_reset.DualCollector` (Algorithm 1's two inner loops);
+:class:`Learner` stores each collected step in its phase's replay buffer and runs that agent's
+update once it is past its heat-up (lines 16 and 23).
+"""
+from __future__ import annotations
+
+import time
+
+import torch
+from omegaconf import DictConfig
+
+from agents import Agent, lnt_batch, with_exploration
+from buffers import buffer_keys
+from config_checks import reset_horizon
+from task_envs import UpdateBudget
+from torchrl_reset import DualCollector
+from torchrl_reset.accel import matmul_products
+
+__all__ = ["make_collector", "Learner", "NonFiniteLoss"]
+
+
+def make_collector(cfg: DictConfig, env, forward: Agent, reset: Agent) -> DualCollector:
+    """Forward and reset episodes over ``env``, with the paper's OU exploration on both policies."""
+    collector = DualCollector(
+        env,
+        with_exploration(forward.actor, env.action_spec, cfg),
+        with_exploration(reset.actor, env.action_spec, cfg),
+        max_forward_steps=int(cfg.task.forward_horizon),   # H_f
+        max_reset_steps=reset_horizon(cfg),                 # H_r
+        min_reset_steps=int(cfg.reset.min_steps),
+        total_frames=int(cfg.total_steps),
+    )
+    collector.set_seed(int(cfg.seed))
+    return collector
+
+
+class NonFiniteLoss(RuntimeError):
+    """A loss came out NaN or infinite; no parameter was changed by it."""
+
+
+class Learner:
+    """Stores every collected step in its phase's buffer and updates that phase's agent.
+
+    Each agent updates once per step of its own phase, after ``heat_up`` steps of it; on a real-time
+    robot only when the update fits in what is left of the control period (:class:`UpdateBudget`).
+    The updates run with the CPU product precision the run chose (``speed.matmul_precision``) and,
+    for the agents named in ``speed.compile``, through ``torch.compile``.
+    """
+
+    def __init__(self, cfg: DictConfig, forward: Agent, reset: Agent, forward_rb, reset_rb, collector: DualCollector,
+                 matmul_precision: str, robot=None, *, last_losses: dict | None = None) -> None:
+        self.cfg, self.forward, self.reset = cfg, forward, reset
+        self.forward_rb, self.reset_rb, self.collector = forward_rb, reset_rb, collector
+        self.forward_keys, self.reset_keys = buffer_keys(cfg, forward, reset)
+        self.matmul_precision, self.robot = matmul_precision, robot
+        self.heat_up = int(cfg.heat_up)
+        self.ours = cfg.algo.name == "ours"
+        compiled = set(cfg.speed.compile)
+        self._losses = {name: torch.compile(agent.loss) if name in compiled else agent.loss
+                        for name, agent in (("forward", forward), ("reset", reset))}
+        self.budget = UpdateBudget()
+        self.last_losses: dict[str, float] = {} if last_losses is None else last_losses  # the latest of each loss
+
+    def observe(self, batch, phase: str) -> None:
+        """Lines 16 (forward) and 23 (reset): store the transition, then update that agent."""
+        updating = self.collector.counters[f"{phase}_steps"] > self.heat_up
+        if phase == "forward":
+            self.forward_rb.extend(batch.select(*self.forward_keys, strict=False))
+            if updating and self._fits("forward"):
+                out = self._update("forward", self.forward_rb.sample(), ("loss_actor", "loss_value"))
+                self.last_losses.update(loss_forward_actor=out["loss_actor"], loss_forward_critic=out["loss_value"])
+        else:
+            self.reset_rb.extend(batch.select(*self.reset_keys, strict=False))
+            if updating and self._fits("reset"):
+                sample = self._reset_sample()
+                names = ("loss_actor", "loss_classifier") if self.ours else ("loss_actor", "loss_value")
+                out = self._update("reset", sample, names)
+                self.last_losses.update(loss_reset_actor=out["loss_actor"], loss_reset_critic=out[names[1]])
+
+    def _reset_sample(self):
+        """The reset agent's batch: ours, replay rows and as many success examples; LNT, its rewards."""
+        sampler = self.reset_rb.sampler
+        fallbacks = getattr(sampler, "fallbacks", 0)
+        sample = self.reset_rb.sample().to(self.cfg.device)
+        if getattr(sampler, "fallbacks", 0) > fallbacks:
+            # no reset episode has n transitions yet: the release uses the one-step label
+            sample.set("one_step", torch.ones(sample.shape[0], dtype=torch.bool, device=sample.device))
+        if self.ours:
+            sample.set("example", self.collector.example_buffer.sample(sample.shape[0]).to(self.cfg.device))
+            return sample
+        return lnt_batch(sample, self.cfg.algo, int(self.cfg.algo.num_members))
+
+    def _fits(self, name: str) -> bool:
+        """On a real-time robot, whether the update fits in what is left of the control period."""
+        return self.robot is None or self.budget.fits(name, self.robot.time_left())
+
+    def _update(self, name: str, sample, names) -> dict[str, float]:
+        """One gradient step of agent ``name`` on ``sample``, then its soft target update."""
+        agent = self.forward if name == "forward" else self.reset
+        started = time.perf_counter()
+        with matmul_products(self.matmul_precision):
+            losses = self._losses[name](sample)
+            total = sum(losses[n] for n in names)
+            if not torch.isfinite(total):
+                raise NonFiniteLoss(", ".join(f"{n}={float(losses[n].detach())}" for n in names))
+            agent.optimizer.zero_grad()
+            total.backward()
+            agent.optimizer.step()
+            agent.targets.step()
+        self.budget.record(name, time.perf_counter() - started)
+        return {n: float(losses[n].detach()) for n in names}

@@ -1,0 +1,203 @@
+"""What a run writes while it trains: its tables, loggers and progress bar, and its summary at the end.
+
+``progress.csv`` (training metrics every ``log_every`` steps), ``eval.csv`` (one row per evaluation),
+``triggers.csv`` (the state before each triggered reset), ``diagnostics.csv`` and ``resets.csv``
+(``diagnostics.py``), torchrl's CSV logs (and optionally wandb), and ``summary.json`` (the paper's
+Table 1 metrics).
+"""
+from __future__ import annotations
+
+import json
+import math
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+import torchrl
+from omegaconf import DictConfig, OmegaConf
+from tqdm import tqdm
+
+from diagnostics import DIAGNOSTIC_FIELDS, RESET_FIELDS, ResetDistances, TriggerScores, probe_classifier
+from run_files import CsvTable, code_version, success_rate_by_quarter
+from task_envs import safety_counters
+
+__all__ = ["PROGRESS_FIELDS", "EVAL_FIELDS", "TRIGGER_FIELDS", "RunRecord", "make_loggers"]
+
+PROGRESS_FIELDS = [
+    "frames", "forward_steps", "reset_steps", "forward_episodes", "reset_episodes", "manual_resets",
+    "triggered_resets", "requested_resets", "successful_resets", "forward_share", "reset_success_rate",
+    "eval_return", "average_return", "steps_per_second", "loss_forward_actor", "loss_forward_critic",
+    "loss_reset_actor", "loss_reset_critic", "skipped_updates", "protective_stops",
+]
+EVAL_FIELDS = ["frames", "forward_return", "forward_steps", "triggered", "reset_success", "reset_steps"]
+TRIGGER_FIELDS = ["frames", "steps", "value", "observation"]
+# the steps of each phase are timed once both agents made this many updates: the first ones include
+# one-off costs (with speed.compile, the compile pause and a recompile of the forward loss)
+WARM_UP_UPDATES = 10
+
+
+def make_loggers(cfg: DictConfig, run_dir: Path) -> list:
+    """torchrl's CSV logger in ``run_dir/logs``; with ``logger.wandb``, also wandb (offline by default)."""
+    from torchrl.record.loggers import CSVLogger
+
+    loggers = [CSVLogger(exp_name="torchrl", log_dir=str(run_dir / "logs"))]
+    if cfg.logger.wandb:
+        from torchrl.record.loggers.wandb import WandbLogger
+
+        loggers.append(WandbLogger(
+            exp_name=f"{cfg.task.name}-{cfg.algo.name}-seed{cfg.seed}", offline=cfg.logger.wandb_mode != "online",
+            save_dir=str(run_dir / "wandb"), project=cfg.logger.project, config=OmegaConf.to_container(cfg, resolve=True),
+        ))
+    return loggers
+
+
+class RunRecord:
+    """The run's tables and counters of what happened; ``history`` travels in every checkpoint."""
+
+    def __init__(self, cfg: DictConfig, run_dir: Path, collector, trigger) -> None:
+        self.cfg, self.run_dir, self.collector, self.trigger = cfg, run_dir, collector, trigger
+        self.progress = CsvTable(run_dir / "progress.csv", PROGRESS_FIELDS)
+        self.evals = CsvTable(run_dir / "eval.csv", EVAL_FIELDS)
+        self.triggers = CsvTable(run_dir / "triggers.csv", TRIGGER_FIELDS)
+        self.diagnostics = CsvTable(run_dir / "diagnostics.csv", DIAGNOSTIC_FIELDS)
+        self.resets = CsvTable(run_dir / "resets.csv", RESET_FIELDS)
+        self.trigger_scores = TriggerScores(trigger.score_key, trigger.threshold)
+        self.distances = ResetDistances(collector.example_buffer)
+        self.history = {"eval_returns": [], "last_losses": {}, "elapsed": 0.0}
+        self.curriculum_index = int(cfg.task.curriculum.index)
+        self.heat_up = int(cfg.heat_up)
+
+    @property
+    def tables(self) -> tuple[CsvTable, ...]:
+        return self.progress, self.evals, self.triggers, self.diagnostics, self.resets
+
+    def begin(self, history: dict | None) -> None:
+        """Continue from a checkpoint's ``history`` (rows written after it are dropped), or start afresh."""
+        if history is not None:
+            self.history = history
+            for table in self.tables:
+                table.truncate_after(self.collector.frames)
+        else:
+            # a fresh start: tables left by an earlier attempt that never checkpointed start over
+            for table in self.tables:
+                table.truncate_after(-1)
+            for stale in ("summary.json", "code.jsonl"):
+                (self.run_dir / stale).unlink(missing_ok=True)
+            (self.run_dir / "config.yaml").write_text(OmegaConf.to_yaml(self.cfg, resolve=True))
+        # the code each stretch of the run ran at (a resumed run appends its own line)
+        with open(self.run_dir / "code.jsonl", "a") as f:
+            f.write(json.dumps({"from_step": self.collector.frames, **code_version()}) + "\n")
+        self.loggers = make_loggers(self.cfg, self.run_dir)
+        # wall time of the steps of each phase once its agent updates (env step, policy, trigger, buffer, update)
+        self.step_time = self.history.setdefault("step_time", {"forward": [0.0, 0], "reset": [0.0, 0]})
+        self.bar = tqdm(total=int(self.cfg.total_steps), initial=self.collector.frames,
+                        desc=f"{self.cfg.task.name}/{self.cfg.algo.name}", unit="step", mininterval=2.0,
+                        disable=not self.cfg.progress_bar, dynamic_ncols=True)
+        self._start = time.perf_counter() - self.history["elapsed"]
+        self._last = time.perf_counter()
+
+    def mark_time(self) -> None:
+        self.history["elapsed"] = time.perf_counter() - self._start
+
+    def step(self, batch, phase: str) -> None:
+        """After each collected step: its trigger score, its time, the progress bar, the collector's events."""
+        counters = self.collector.counters
+        if phase == "forward":
+            self.trigger_scores.add(batch)
+        now = time.perf_counter()
+        if min(counters["forward_steps"], counters["reset_steps"]) > self.heat_up + WARM_UP_UPDATES:
+            self.step_time[phase][0] += now - self._last
+            self.step_time[phase][1] += batch.numel()
+        self._last = now
+        self.bar.update(batch.numel())
+        for event in self.collector.pop_events():
+            self.trigger_scores.add_event(event)
+            if event["phase"] == "reset":
+                self.resets.append(self.distances.row(event))
+            if event["outcome"] == "triggered":
+                obs = event["state"]["observation"].flatten().tolist()
+                self.triggers.append({"frames": event["frame"], "steps": event["steps"],
+                                      "value": obs[self.curriculum_index],
+                                      "observation": " ".join(f"{v:.5g}" for v in obs)})
+
+    def evaluation(self, result: dict) -> None:
+        self.history["eval_returns"].append(result["forward_return"])
+        self.evals.append({"frames": self.collector.frames, **result})
+
+    def log(self, learner, env) -> None:
+        """A ``progress.csv`` row, a ``diagnostics.csv`` row, the loggers and the progress bar."""
+        self.mark_time()
+        c, frames = self.collector.counters, self.collector.frames
+        returns = self.history["eval_returns"]
+        row = {
+            "frames": frames, **{k: c[k] for k in PROGRESS_FIELDS if k in c},
+            "forward_share": self.collector.forward_share, "reset_success_rate": self.collector.reset_success_rate,
+            "eval_return": returns[-1] if returns else float("nan"),
+            "average_return": float(np.mean(returns)) if returns else float("nan"),
+            "steps_per_second": frames / max(self.history["elapsed"], 1e-9), "skipped_updates": learner.budget.skipped,
+            **self.history["last_losses"], "protective_stops": safety_counters(env).get("protective_stops", 0),
+        }
+        self.progress.append(row)
+        reset_rb = learner.reset_rb
+        fallbacks = getattr(reset_rb.sampler, "fallbacks", "")
+        with torch.random.fork_rng(devices=[]):  # the probe's samples leave training's random stream as it was
+            probe = probe_classifier(self.cfg.algo.name, learner.reset.model, learner.reset.actor,
+                                     self.collector.example_buffer, learner.forward_rb, reset_rb, self.trigger.threshold)
+        if fallbacks != "":
+            reset_rb.sampler.fallbacks = fallbacks  # the probe's own sample does not count
+        self.diagnostics.append({"frames": frames, **self.trigger_scores.row(), **probe, "sampler_fallbacks": fallbacks})
+        for logger in self.loggers:
+            logger.log_metrics({k: v for k, v in row.items() if k != "frames" and not _isnan(v)}, step=frames)
+        self.bar.set_postfix(sps=f"{row['steps_per_second']:.0f}", manual=row["manual_resets"],
+                             ret=f"{row['eval_return']:.2f}", refresh=False)
+
+    def close(self) -> None:
+        self.bar.close()
+
+    def summary(self, *, finished: bool, learner, env, robot, matmul_precision: str) -> dict:
+        """The paper's Table 1 metrics and what the run ran on, written to ``summary.json``."""
+        cfg, collector, history = self.cfg, self.collector, self.history
+        c, returns = collector.counters, history["eval_returns"]
+        summary = {
+            "task": cfg.task.name, "algo": cfg.algo.name, "seed": int(cfg.seed),
+            # the threshold the trigger used (ours: algo.threshold when set, else the task's p_thresh)
+            "p_thresh": float(self.trigger.threshold) if cfg.algo.name == "ours" else float(cfg.task.p_thresh),
+            "steps": collector.frames, "finished": finished,
+            "average_return": float(np.mean(returns)) if returns else None,
+            "manual_resets": c["manual_resets"],
+            # an episodic agent needs one reset per forward episode (the release logs it as the baseline)
+            "episodic_resets": c["forward_episodes"],
+            "resets_saved": c["forward_episodes"] - c["manual_resets"],
+            "forward_share": collector.forward_share,
+            "reset_success_rate": collector.reset_success_rate,
+            **success_rate_by_quarter(self.progress.path),
+            "final_eval_return": returns[-1] if returns else None,
+            "evaluations": len(returns),
+            **{k: c[k] for k in ("triggered_resets", "requested_resets", "successful_resets", "reset_episodes")},
+            "skipped_updates": learner.budget.skipped,
+            "overruns": getattr(robot, "overruns", 0),
+            "protective_stops": safety_counters(env).get("protective_stops", 0),
+            "safety": safety_counters(env),
+            "seconds": round(history["elapsed"], 1),
+            "steps_per_second": round(collector.frames / max(history["elapsed"], 1e-9), 1),
+            "step_seconds": {name: (total / count if count else None) for name, (total, count) in self.step_time.items()},
+            "device": str(cfg.device), "matmul_precision": matmul_precision, **code_version(),
+            "torch": torch.__version__, "torchrl": torchrl.__version__,
+        }
+        (self.run_dir / "summary.json").write_text(json.dumps(summary, indent=2, default=_json_default))
+        for logger in self.loggers:
+            finish = getattr(getattr(logger, "experiment", None), "finish", None)
+            if callable(finish):  # wandb: close the run so its files are complete
+                finish()
+        return summary
+
+
+def _isnan(value) -> bool:
+    return isinstance(value, float) and math.isnan(value)
+
+
+def _json_default(value):
+    if isinstance(value, (np.floating, np.integer)):
+        return value.item()
+    return float(value)

@@ -1,0 +1,96 @@
+"""The RCE loss, computed faster: the same losses as :class:`~torchrl_reset.RCELoss` with fewer passes."""
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from tensordict import TensorDictBase
+
+from ..rce_loss import RCELoss, _as_tuple, label_weight, rce_label
+from .ensemble import FastEnsembleValueOperator
+
+__all__ = ["FastRCELoss"]
+
+
+class FastRCELoss(RCELoss):
+    """:class:`~torchrl_reset.RCELoss` with the classifier called on raw tensors in shared passes.
+
+    The reference calls the classifier five times through its keys (target pass, examples, replay,
+    actor) and the actor three times. Here, with a :class:`FastEnsembleValueOperator` classifier:
+
+    - one actor pass serves ``s_{t+1}``, ``s_{t+n}`` and ``s*``; one target pass the first two;
+    - the examples, the replay pairs and the actor's pairs share the members' state part
+      (:meth:`FastEnsembleValueOperator.paired_logits`), and the priors' state part of each success
+      example is kept between updates when the batch carries the examples' slots (``"index"``).
+
+    The same losses up to float32 rounding (``tests/test_accel.py`` pins the two over several
+    updates). With any other classifier it runs the reference :meth:`RCELoss.forward`.
+    """
+
+    def _fast(self) -> bool:
+        return isinstance(self._networks[1], FastEnsembleValueOperator)
+
+    def _label_and_weight(self, replay: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor]:
+        if not self._fast():
+            return super()._label_and_weight(replay)
+        states = self._target_states(replay)
+        return self._labels_from(self.classifier_network.observation_from(states), self._act(states), replay.shape[0])
+
+    def _labels_from(self, observation: torch.Tensor, action: torch.Tensor, batch: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """Labels and weights from ``s_{t+1}`` (and ``s_{t+n}``) stacked, with the policy's actions there."""
+        gamma = self.gamma
+        logits = self.classifier_network.logits(observation, action, self.target_classifier_network_params)
+        value = torch.sigmoid(logits)
+        if self.clip_target_values:
+            value = value.clamp(0.0, 0.5)
+        label = rce_label(value[:batch], gamma)
+        if value.shape[0] > batch:  # the n-step part
+            label = 0.5 * (label + rce_label(value[batch:], gamma**self.n_steps))
+        label = label.amin(-1).clamp(max=0.5)
+        return label, label_weight(label, gamma)
+
+    def forward(self, tensordict: TensorDictBase):
+        if not self._fast():
+            return super().forward(tensordict)
+        keys = self.tensor_keys
+        replay = self._replay(tensordict)
+        batch = replay.shape[0]
+        states = self._require(replay, None, "s_t")
+        action = replay.get(keys.action, None)
+        if action is None:
+            raise KeyError(f"RCELoss needs the action key {keys.action!r} at the root of its input.")
+        examples = self._require(replay, keys.example_state, "success examples s*")
+        slots = replay.get(_as_tuple(keys.example_state) + _as_tuple(keys.example_index), None)
+        if examples.shape[0] != batch:
+            raise ValueError(f"RCELoss needs one success example per replay row: got {examples.shape[0]} for {batch}.")
+        gamma = self.gamma
+        net = self.classifier_network
+
+        with torch.no_grad():
+            # One actor pass for s_{t+1}, s_{t+n} and s*; one target-classifier pass for the first two.
+            targets = self._target_states(replay)
+            num_targets = targets.shape[0]
+            acting = torch.cat([targets, examples], 0)
+            acting_obs = net.observation_from(acting)
+            acting_actions = self._act(acting)
+            label, weight = self._labels_from(acting_obs[:num_targets], acting_actions[:num_targets], batch)
+
+        # Classifier loss on the examples and the replay rows; actor loss on (s_t, pi(s_t)). The
+        # classifier's state part is computed once for both (FastEnsembleValueOperator.paired_logits).
+        observation = torch.cat([acting_obs[num_targets:], net.observation_from(states)], 0)
+        classifier_action = torch.cat([acting_actions[num_targets:], action.to(acting_actions.dtype)], 0)
+        logits, actor_logits = net.paired_logits(
+            observation, classifier_action, self._act(states), batch, self.classifier_network_params, slots=slots
+        )
+        example_logits, replay_logits = logits[:batch], logits[batch:]
+        loss_examples = (1.0 - gamma) * F.binary_cross_entropy_with_logits(
+            example_logits, torch.full_like(example_logits, 0.5), reduction="none"
+        ).mean(0)
+        loss_replay = F.binary_cross_entropy_with_logits(
+            replay_logits,
+            label.unsqueeze(-1).expand_as(replay_logits),
+            weight=weight.unsqueeze(-1),
+            reduction="none",
+        ).mean(0)
+        loss_classifier = (loss_examples + loss_replay).sum()
+        loss_actor = -torch.sigmoid(actor_logits).amin(-1).mean()
+        return self._output(loss_classifier, loss_actor, label, weight, replay_logits, example_logits)
