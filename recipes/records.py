@@ -85,9 +85,11 @@ class RunRecord:
             for stale in ("summary.json", "code.jsonl"):
                 (self.run_dir / stale).unlink(missing_ok=True)
             (self.run_dir / "config.yaml").write_text(OmegaConf.to_yaml(self.cfg, resolve=True))
-        # the code each stretch of the run ran at (a resumed run appends its own line)
+        # the code each stretch of the run ran at (a resumed run appends its own line); the summary
+        # names this stretch's, read now: the work tree may change while the run goes on
+        self.code = code_version()
         with open(self.run_dir / "code.jsonl", "a") as f:
-            f.write(json.dumps({"from_step": self.collector.frames, **code_version()}) + "\n")
+            f.write(json.dumps({"from_step": self.collector.frames, **self.code}) + "\n")
         self.loggers = make_loggers(self.cfg, self.run_dir)
         # wall time of the steps of each phase once its agent updates (env step, policy, trigger, buffer, update)
         self.step_time = self.history.setdefault("step_time", {"forward": [0.0, 0], "reset": [0.0, 0]})
@@ -182,7 +184,7 @@ class RunRecord:
             "seconds": round(history["elapsed"], 1),
             "steps_per_second": round(collector.frames / max(history["elapsed"], 1e-9), 1),
             "step_seconds": {name: (total / count if count else None) for name, (total, count) in self.step_time.items()},
-            "device": str(cfg.device), "matmul_precision": matmul_precision, **code_version(),
+            "device": str(cfg.device), "matmul_precision": matmul_precision, **self.code,
             "torch": torch.__version__, "torchrl": torchrl.__version__,
         }
         (self.run_dir / "summary.json").write_text(json.dumps(summary, indent=2, default=_json_default))

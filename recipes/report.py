@@ -197,9 +197,24 @@ def _paper(value, kind: str) -> str:
     return f"{100 * value:.1f}%" if kind == "share" else (f"{value:.0f}" if kind == "count" else f"{value:.2f}")
 
 
+def _reached(run: Run) -> bool:
+    return run.budget is None or run.summary.get("steps", 0) >= run.budget
+
+
+def _complete(groups: dict) -> tuple[dict, list[Run]]:
+    """With a budget, each group's runs that reached it; runs short of it are left out of the means
+    (listed apart) unless no run of their group reached it (the row is then marked in progress)."""
+    kept, short = {}, []
+    for key, members in groups.items():
+        done = [r for r in members if _reached(r)]
+        kept[key] = done or members
+        short += [r for r in members if not _reached(r)] if done else []
+    return kept, short
+
+
 def table1(runs: list[Run]) -> str:
     """Markdown table: one row per (task, algo, p_thresh) group, mean ± std over its seeds, paper beside."""
-    groups = _by(runs, "task", "algo", "p_thresh")
+    groups, short = _complete(_by(runs, "task", "algo", "p_thresh"))
     kinds = ("return", "count", "share", "share")
     lines = [
         "| task | algo | p_thresh | seeds | steps | avg return | manual resets | forward share | success rate |",
@@ -217,16 +232,24 @@ def table1(runs: list[Run]) -> str:
             if paper is not None:
                 cell += f" (paper {_paper(paper[index], kind)})"
             cells.append(cell)
-        steps = sorted({r.summary.get("steps") for r in members})
+        steps = "/".join(map(str, sorted({r.summary.get("steps") for r in members})))
+        if not all(_reached(r) for r in members):
+            steps += " (in progress)"
         lines.append(
             f"| {TASK_TITLES.get(task, task)} | {ALGO_TITLES.get(algo, algo)} | {p_thresh} | {len(members)} | "
-            f"{'/'.join(map(str, steps))} | " + " | ".join(cells) + " |"
+            f"{steps} | " + " | ".join(cells) + " |"
         )
     budget = {r.budget for r in runs} - {None}
     note = f" at a budget of {budget.pop()} steps" if budget else ""
     lines += [
         "",
         f"Mean ± standard deviation over seeds{note}; the paper's numbers are 1.5M-step means of 5 seeds.",
+    ]
+    if short:
+        lines.append("Left out of the means, still short of the budget: " + "; ".join(
+            f"{ALGO_TITLES.get(r.algo, r.algo)} seed {r.summary['seed']} at {r.summary.get('steps')} steps"
+            for r in sorted(short, key=lambda r: (r.algo, r.summary["seed"]))) + ".")
+    lines += [
         "",
         "| task | algo | p_thresh | seeds | manual resets | episodic resets | saved | manual resets per 1k steps, last quarter |",
         "|---|---|---|---|---|---|---|---|",
@@ -277,7 +300,19 @@ def _by(runs: list[Run], *attributes: str) -> dict[tuple, list[Run]]:
     return groups
 
 
+def _steps_label(value: float, _position=None) -> str:
+    """Step counts on an axis as 0, 500, 20k, 1.5M."""
+    if abs(value) >= 1e6:
+        return f"{value / 1e6:g}M"
+    return f"{value / 1e3:g}k" if abs(value) >= 1e4 else f"{value:g}"
+
+
 def _save(fig, path: Path, written: list[Path]) -> None:
+    from matplotlib.ticker import FuncFormatter
+
+    for ax in fig.axes:
+        if ax.get_xlabel().startswith("steps"):
+            ax.xaxis.set_major_formatter(FuncFormatter(_steps_label))
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)

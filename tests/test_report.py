@@ -110,3 +110,22 @@ def test_a_run_still_going_is_read_from_its_config_and_logs(tmp_path):
     assert run.summary["steps"] == 1000 and run.summary["manual_resets"] == 4 and not run.summary["finished"]
     assert run.summary["forward_share"] == pytest.approx(0.25) and run.summary["reset_success_rate"] == pytest.approx(3 / 7)
     assert run.summary["episodic_resets"] == 5
+
+
+def test_runs_short_of_the_budget_are_left_out_of_their_groups_means(tmp_path):
+    runs = tmp_path / "runs"
+    # two seeds of ours: seed 0 reached 1000 steps with 40 manual resets, seed 1 only 500 (10 so far)
+    fabricate(runs, "peg_insertion_insert", "ours", 0, 0.1, 2.0, 40, 0.5, 0.5, steps=1000)
+    fabricate(runs, "peg_insertion_insert", "ours", 1, 0.1, 1.0, 20, 0.5, 0.5, steps=1000)
+    with open(runs / "peg_insertion_insert" / "ours" / "p0.1" / "seed1" / "progress.csv", "w", newline="") as f:
+        csv.writer(f).writerows([["frames", "manual_resets"], [250, 5], [500, 10]])
+    # LNT has no run at the budget: its row is kept, marked in progress
+    fabricate(runs, "peg_insertion_insert", "lnt", 0, 0.1, 1.0, 8, 0.5, 0.5, steps=1000)
+    with open(runs / "peg_insertion_insert" / "lnt" / "p0.1" / "seed0" / "progress.csv", "w", newline="") as f:
+        csv.writer(f).writerows([["frames", "manual_resets"], [250, 3], [750, 6]])
+    report.report([runs], tmp_path / "out", budget=1000)
+    table = (tmp_path / "out" / "table1.md").read_text()
+    assert "| peg-insertion (insert) | ours | 0.1 | 1 | 1000 |" in table  # seed 1 out of the mean: 40, not 25
+    assert "| ours | 0.1 | 1 | 40 ± 0 |" in table
+    assert "| peg-insertion (insert) | LNT | 0.1 | 1 | 750 (in progress) |" in table
+    assert "Left out of the means, still short of the budget: ours seed 1 at 500 steps." in table

@@ -114,6 +114,38 @@ class RCELoss(LossModule):
         ['loss_actor', 'loss_classifier']
         >>> (out["loss_actor"] + out["loss_classifier"]).backward()
         >>> updater.step()
+
+        Any classifier keeping the contract works, for instance one built from stock parts: K torchrl
+        ``MLP`` members stacked with ``TensorDict.from_modules`` and run with ``torch.vmap``, each plus
+        beta times a frozen prior (buffers, through ``TensorDictParams(..., no_convert=True)``):
+
+        >>> from tensordict import TensorDictParams
+        >>> from tensordict.nn import TensorDictModuleBase
+        >>> from torchrl.modules import MLP
+        >>> class StockEnsemble(TensorDictModuleBase):
+        ...     in_keys, out_keys = ["observation", "action"], ["state_action_logit"]
+        ...     def __init__(self, members, beta=3.0):
+        ...         super().__init__()
+        ...         make = lambda: MLP(in_features=obs_dim + act_dim, out_features=1, num_cells=[16, 16])
+        ...         self.trained = TensorDict.from_modules(*[make() for _ in range(members)], as_module=True)
+        ...         priors = TensorDict.from_modules(*[make() for _ in range(members)]).detach().clone()
+        ...         self.priors = TensorDictParams(priors, no_convert=True)
+        ...         self.__dict__["net"], self.beta = make().to("meta"), beta  # the layout, not a submodule
+        ...     def forward(self, td):
+        ...         x = torch.cat([td["observation"], td["action"]], -1)
+        ...         def member(f, g):
+        ...             with f.to_module(self.net):
+        ...                 out = self.net(x)
+        ...             with g.to_module(self.net):
+        ...                 prior = self.net(x)
+        ...             return out + self.beta * prior
+        ...         logits = torch.vmap(member)(self.trained, self.priors)  # [K, B, 1]
+        ...         return td.set("state_action_logit", logits.squeeze(-1).movedim(0, -1))  # [B, K]
+        >>> loss = RCELoss(actor, StockEnsemble(4), n_steps=4)
+        >>> updater = SoftUpdate(loss, tau=1e-3)
+        >>> out = loss(batch)
+        >>> (out["loss_actor"] + out["loss_classifier"]).backward()
+        >>> updater.step()
     """
 
     @dataclass
