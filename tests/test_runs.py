@@ -1,0 +1,91 @@
+"""Run-masked Adam and soft update: each run as if trained alone, the others untouched bit for bit."""
+from __future__ import annotations
+
+import pytest
+import torch
+
+from torchrl_reset.runs import RunMaskedAdam, RunMaskedSoftUpdate
+
+S = 4
+
+
+def masks(steps: int, gen: torch.Generator) -> list[torch.Tensor]:
+    out = [torch.rand(S, generator=gen) < 0.6 for _ in range(steps)]
+    out[3] = torch.zeros(S, dtype=torch.bool)  # a step where no run acted
+    out[4] = torch.ones(S, dtype=torch.bool)
+    return out
+
+
+def test_each_run_follows_torch_adam_alone_and_runs_that_did_not_act_are_untouched():
+    gen = torch.Generator().manual_seed(0)
+    weight = torch.nn.Parameter(torch.randn(S, 5, 3, generator=gen))
+    bias = torch.nn.Parameter(torch.randn(S, 3, generator=gen))
+    batched = RunMaskedAdam([{"params": [weight], "lr": 1e-2}, {"params": [bias], "lr": 3e-3, "betas": (0.8, 0.99)}],
+                            runs=S)
+    alone = [(torch.nn.Parameter(weight[s].detach().clone()), torch.nn.Parameter(bias[s].detach().clone()))
+             for s in range(S)]
+    optimizers = [torch.optim.Adam([{"params": [w], "lr": 1e-2}, {"params": [b], "lr": 3e-3, "betas": (0.8, 0.99)}],
+                                   foreach=False) for w, b in alone]
+    schedule = masks(12, gen)
+    for mask in schedule:
+        grad_w, grad_b = torch.randn(S, 5, 3, generator=gen), torch.randn(S, 3, generator=gen)
+        before = weight.detach().clone(), bias.detach().clone(), {k: v.clone() for k, v in batched.state[weight].items()}
+        weight.grad, bias.grad = grad_w.clone(), grad_b.clone()
+        batched.step(mask)
+        for s in range(S):
+            if mask[s]:
+                (w, b), opt = alone[s], optimizers[s]
+                w.grad, b.grad = grad_w[s].clone(), grad_b[s].clone()
+                opt.step()
+            else:  # not touched: parameters, moments
+                assert torch.equal(weight[s], before[0][s]) and torch.equal(bias[s], before[1][s])
+                assert all(torch.equal(batched.state[weight][k][s], before[2][k][s]) for k in before[2])
+        for s in range(S):
+            assert torch.equal(weight[s], alone[s][0]) and torch.equal(bias[s], alone[s][1]), s  # bit for bit
+    # each run counted the steps it acted in, as its own optimizer did
+    assert batched.steps.tolist() == torch.stack(schedule).sum(0).tolist()
+    assert batched.steps.tolist() == [int(optimizers[s].state[alone[s][0]]["step"]) for s in range(S)]
+
+
+def test_state_dict_resumes_exactly():
+    gen = torch.Generator().manual_seed(1)
+    p = torch.nn.Parameter(torch.randn(S, 6, generator=gen))
+    q = torch.nn.Parameter(p.detach().clone())
+    a, b = RunMaskedAdam([p], runs=S), RunMaskedAdam([q], runs=S)
+    grads = [torch.randn(S, 6, generator=gen) for _ in range(6)]
+    steps = masks(6, gen)
+    for i in range(3):
+        p.grad = grads[i].clone()
+        a.step(steps[i])
+    q.data.copy_(p.data)
+    b.load_state_dict(a.state_dict())
+    for i in range(3, 6):
+        p.grad, q.grad = grads[i].clone(), grads[i].clone()
+        a.step(steps[i])
+        b.step(steps[i])
+    assert torch.equal(p, q) and torch.equal(a.steps, b.steps)
+
+
+def test_masked_soft_update_is_softupdates_lerp_for_the_masked_runs_only():
+    gen = torch.Generator().manual_seed(2)
+    source, target = torch.randn(S, 7, generator=gen), torch.randn(S, 7, generator=gen)
+    expected = target.clone()
+    update = RunMaskedSoftUpdate([source], [target], runs=S, tau=1e-3)
+    mask = torch.tensor([True, False, True, False])
+    update.step(mask)
+    for s in range(S):
+        if mask[s]:
+            expected[s].lerp_(source[s], 1 - (1 - 1e-3))  # torchrl SoftUpdate: lerp_(source, 1 - eps)
+    assert torch.equal(target, expected)
+
+
+@pytest.mark.parametrize("mask", [torch.ones(S + 1, dtype=torch.bool), torch.ones(S), [True] * S])
+def test_bad_masks_and_parameters_are_refused(mask):
+    p = torch.nn.Parameter(torch.zeros(S, 2))
+    p.grad = torch.ones(S, 2)
+    with pytest.raises(ValueError, match="boolean tensor of shape"):
+        RunMaskedAdam([p], runs=S).step(mask)
+    with pytest.raises(ValueError, match="run dimension"):
+        RunMaskedAdam([torch.nn.Parameter(torch.zeros(S + 1, 2))], runs=S)
+    with pytest.raises(ValueError, match="tau"):
+        RunMaskedSoftUpdate([p.detach()], [p.detach().clone()], runs=S, tau=0.0)
