@@ -358,17 +358,23 @@ class RCELoss(LossModule):
         label = label.amin(-1).clamp(max=0.5)  # the ensemble minimum, shared by all members
         return label, label_weight(label, gamma)
 
-    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        keys, gamma = self.tensor_keys, self.gamma
+    def _read(self, tensordict: TensorDictBase):
+        """The batch's replay rows, ``s_t``, ``a_t`` and success examples, checked."""
         replay = self._replay(tensordict)
-        batch = replay.shape[0]
         states = self._require(replay, None, "s_t")
-        action = replay.get(keys.action, None)
+        action = replay.get(self.tensor_keys.action, None)
         if action is None:
-            raise KeyError(f"RCELoss needs the action key {keys.action!r} at the root of its input.")
-        examples = self._require(replay, keys.example_state, "success examples s*")
-        if examples.shape[0] != batch:
-            raise ValueError(f"RCELoss needs one success example per replay row: got {examples.shape[0]} for {batch}.")
+            raise KeyError(f"RCELoss needs the action key {self.tensor_keys.action!r} at the root of its input.")
+        examples = self._require(replay, self.tensor_keys.example_state, "success examples s*")
+        if examples.shape[0] != replay.shape[0]:
+            raise ValueError(
+                f"RCELoss needs one success example per replay row: got {examples.shape[0]} for {replay.shape[0]}."
+            )
+        return replay, states, action, examples
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        gamma = self.gamma
+        replay, states, action, examples = self._read(tensordict)
 
         with torch.no_grad():
             label, weight = self._label_and_weight(replay)

@@ -205,17 +205,8 @@ class FastEnsembleValueOperator(EnsembleValueOperator):
     def logits(
         self, observation: torch.Tensor, action: torch.Tensor, params: TensorDictBase | None = None
     ) -> torch.Tensor:
-        """Per-member logits for a batch of (observation, action) pairs.
-
-        Args:
-            observation (Tensor): ``[*batch, observation_dim]``.
-            action (Tensor): ``[*batch, action_dim]``.
-            params (TensorDictBase, optional): the parameters and buffers to use instead of the
-                module's own (for instance a loss module's target copy).
-
-        Returns:
-            ``[*batch, K]`` logits ``f_i + beta * g_i``.
-        """
+        """:meth:`EnsembleValueOperator.logits`, with the fused products; without gradients trained and
+        prior members run as one stack of 2K."""
         batch = observation.shape[:-1]
         obs, act = self._check_inputs(observation, action)
         k = self.num_members

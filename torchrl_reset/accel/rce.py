@@ -52,16 +52,9 @@ class FastRCELoss(RCELoss):
         if not self._fast():
             return super().forward(tensordict)
         keys = self.tensor_keys
-        replay = self._replay(tensordict)
+        replay, states, action, examples = self._read(tensordict)
         batch = replay.shape[0]
-        states = self._require(replay, None, "s_t")
-        action = replay.get(keys.action, None)
-        if action is None:
-            raise KeyError(f"RCELoss needs the action key {keys.action!r} at the root of its input.")
-        examples = self._require(replay, keys.example_state, "success examples s*")
         slots = replay.get(_as_tuple(keys.example_state) + _as_tuple(keys.example_index), None)
-        if examples.shape[0] != batch:
-            raise ValueError(f"RCELoss needs one success example per replay row: got {examples.shape[0]} for {batch}.")
         gamma = self.gamma
         net = self.classifier_network
 
