@@ -358,16 +358,17 @@ def figure4(runs: list[Run], out: Path) -> list[Path]:
 def figure5(runs: list[Run], out: Path) -> list[Path]:
     written = []
     for (task, algo), members in _by(runs, "task", "algo").items():
-        points = [run.table("triggers.csv") for run in members]
-        points = [p for p in points if "frames" in p]
+        points = [(run, run.table("triggers.csv")) for run in members]
+        points = [(run, p) for run, p in points if "frames" in p]
         if not points:
             continue
         label = _curriculum_label(members[0])
         fig, ax = plt.subplots(figsize=(6, 3.8))
-        for i, p in enumerate(points):
-            ax.scatter(p["frames"], p["value"], s=6, alpha=0.5, label=f"seed {members[i].summary['seed']}")
+        for run, p in points:
+            ax.scatter(p["frames"], p["value"], s=6, alpha=0.5, label=f"seed {run.summary['seed']}")
         ax.set(title=f"{TASK_TITLES.get(task, task)}, {ALGO_TITLES.get(algo, algo)}: state before each trigger",
                xlabel="steps (forward + reset)", ylabel=label)
+        ax.set_xlim(0, max(run.summary.get("steps", 0) for run in members) or None)  # the whole run, quiet stretches too
         ax.grid(alpha=0.3)
         ax.legend(fontsize=8, markerscale=3)
         _save(fig, out / f"fig5_{task}_{algo}.png", written)
