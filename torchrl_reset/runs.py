@@ -18,7 +18,9 @@ from collections.abc import Iterable, Sequence
 
 import torch
 
-__all__ = ["RunMaskedAdam", "RunMaskedSoftUpdate"]
+from .ensemble import EnsembleValueOperator
+
+__all__ = ["RunMaskedAdam", "RunMaskedSoftUpdate", "run_logits"]
 
 
 def _check_mask(mask: torch.Tensor, runs: int) -> torch.Tensor:
@@ -169,3 +171,36 @@ class RunMaskedSoftUpdate:
         for source, target in zip(self.sources, self.targets):
             where = mask.to(target.device).reshape(-1, *([1] * (target.dim() - 1)))
             target.copy_(torch.where(where, target.lerp(source, self.weight), target))
+
+
+def run_logits(ensemble, observation: torch.Tensor, action: torch.Tensor, runs: int, params=None) -> torch.Tensor:
+    """The logits of S runs' ensembles held as one :class:`~torchrl_reset.EnsembleValueOperator` of S*K members.
+
+    Members ``s*K .. s*K + K - 1`` belong to run ``s`` and see only run ``s``'s inputs:
+    ``observation`` ``[S, N, d]`` and ``action`` ``[S, N, a]`` give ``[S, N, K]``, each run's
+    ``f_i(s, a) + beta * g_i(s, a)`` as its own K-member ensemble computes it.
+
+    Examples:
+        >>> import torch
+        >>> from torchrl_reset import EnsembleValueOperator
+        >>> both = EnsembleValueOperator(3, 2, num_members=2 * 4, hidden_sizes=(8, 8))  # 2 runs of K = 4
+        >>> run_logits(both, torch.randn(2, 5, 3), torch.rand(2, 5, 2), runs=2).shape
+        torch.Size([2, 5, 4])
+    """
+    members = ensemble.num_members
+    if runs < 1 or members % runs:
+        raise ValueError(f"{members} members do not split into {runs} runs.")
+    if observation.dim() != 3 or observation.shape[0] != runs or action.shape[:2] != observation.shape[:2]:
+        raise ValueError(f"observation must be [S={runs}, N, d] and action [S, N, a]; got "
+                         f"{tuple(observation.shape)} and {tuple(action.shape)}.")
+    k, n = members // runs, observation.shape[1]
+
+    def per_member(x: torch.Tensor) -> torch.Tensor:  # [S, N, *] -> [S*K, N, *]: run s's rows for its K members
+        return x.unsqueeze(1).expand(runs, k, *x.shape[1:]).reshape(members, n, x.shape[-1])
+
+    obs, act = per_member(observation), per_member(action.to(observation.dtype))
+    plain = EnsembleValueOperator.members_forward  # the reference products broadcast per-member inputs
+    logit = plain(obs, act, *ensemble.layer_tensors(params))
+    if ensemble.has_prior:
+        logit = logit + ensemble.prior_scale * plain(obs, act, *ensemble.layer_tensors(params, "prior_"))
+    return logit.reshape(runs, k, n).transpose(1, 2)
