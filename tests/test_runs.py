@@ -107,3 +107,24 @@ def test_run_logits_give_each_run_what_its_own_ensemble_gives_on_its_own_inputs(
         torch.testing.assert_close(out[s], alone.logits(obs[s], act[s]), rtol=1e-12, atol=1e-12)
     with pytest.raises(ValueError, match="do not split"):
         run_logits(both, obs, act, runs=5)
+
+
+def test_run_mlp_computes_each_runs_own_network_and_round_trips():
+    from torch import nn
+
+    from torchrl_reset.runs import RunMLP
+
+    torch.manual_seed(4)
+    nets = [nn.Sequential(nn.Linear(5, 16), nn.ReLU(), nn.Linear(16, 8), nn.ReLU(), nn.Linear(8, 2)).double()
+            for _ in range(S)]
+    batched = RunMLP.from_modules(nets).double()
+    x = torch.randn(S, 3, 6, 5, dtype=torch.float64)
+    out = batched(x)
+    assert out.shape == (S, 3, 6, 2)
+    for s in range(S):
+        torch.testing.assert_close(out[s], nets[s](x[s]), rtol=1e-12, atol=1e-12)
+        torch.testing.assert_close(batched.run(s).double()(x[s]), nets[s](x[s]), rtol=1e-12, atol=1e-12)
+    fresh = RunMLP(400, 300, (), runs=2)  # Xavier-uniform bounds, zero biases, like the paper's layers
+    assert float(fresh.weights[0].detach().abs().max()) <= (6 / 700) ** 0.5 and not fresh.biases[0].any()
+    with pytest.raises(ValueError, match="run dimension"):
+        batched(torch.randn(S + 1, 5, dtype=torch.float64))
