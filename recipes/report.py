@@ -127,7 +127,7 @@ class Run:
         """Resets an episodic agent would have needed (one per forward episode) and the manual resets
         per 1000 steps over the last quarter of the (budgeted) run."""
         progress = self.table("progress.csv")
-        out = {"episodic_resets": math.nan, "late_manual_rate": math.nan}
+        out = {"episodic_resets": math.nan, "episodic_by_steps": math.nan, "late_manual_rate": math.nan}
         frames = progress.get("frames", np.zeros(0))
         if not len(frames):
             return out
@@ -135,6 +135,9 @@ class Run:
             out["episodic_resets"] = float(progress["forward_episodes"][-1])
             if self.budget is None and self.summary.get("episodic_resets") is not None:
                 out["episodic_resets"] = float(self.summary["episodic_resets"])  # at the same step as manual_resets
+        horizon = self._forward_horizon()
+        if "forward_steps" in progress and horizon:
+            out["episodic_by_steps"] = float(math.ceil(progress["forward_steps"][-1] / horizon))
         if "manual_resets" in progress and len(frames) >= 2:
             end = frames[-1]
             start = int(np.searchsorted(frames, end - end / 4, side="right")) - 1
@@ -142,6 +145,16 @@ class Run:
                 manual = progress["manual_resets"]
                 out["late_manual_rate"] = float(1000 * (manual[-1] - manual[start]) / (end - frames[start]))
         return out
+
+
+    def _forward_horizon(self) -> int | None:
+        """H_f from the run's ``config.yaml`` (None without one)."""
+        path = self.folder / "config.yaml"
+        if not path.exists():
+            return None
+        from omegaconf import OmegaConf
+
+        return OmegaConf.select(OmegaConf.load(path), "task.forward_horizon", default=None)
 
 
 def _float(value: str) -> float:
@@ -251,8 +264,9 @@ def table1(runs: list[Run]) -> str:
             for r in sorted(short, key=lambda r: (r.algo, r.summary["seed"]))) + ".")
     lines += [
         "",
-        "| task | algo | p_thresh | seeds | manual resets | episodic resets | saved | manual resets per 1k steps, last quarter |",
-        "|---|---|---|---|---|---|---|---|",
+        "| task | algo | p_thresh | seeds | manual resets | episodic resets | saved | episodic resets, same forward steps "
+        "| saved | manual resets per 1k steps, last quarter |",
+        "|---|---|---|---|---|---|---|---|---|---|",
     ]
     for (task, algo, p_thresh), members in sorted(
         groups.items(), key=lambda kv: (order.index(kv[0][0]) if kv[0][0] in order else 99, kv[0][1], kv[0][2] or 0)
@@ -261,13 +275,18 @@ def table1(runs: list[Run]) -> str:
         episodic = _mean_std([r.summary["episodic_resets"] for r in members])
         saved = _mean_std([r.summary["episodic_resets"] - r.summary["manual_resets"] for r in members])
         late = _mean_std([r.summary["late_manual_rate"] for r in members])
+        by_steps = _mean_std([r.summary["episodic_by_steps"] for r in members])
+        saved_by_steps = _mean_std([r.summary["episodic_by_steps"] - r.summary["manual_resets"] for r in members])
         lines.append(
             f"| {TASK_TITLES.get(task, task)} | {ALGO_TITLES.get(algo, algo)} | {p_thresh} | {len(members)} | "
-            f"{_cell(*manual, 'count')} | {_cell(*episodic, 'count')} | {_cell(*saved, 'count')} | {_cell(*late, 'return')} |"
+            f"{_cell(*manual, 'count')} | {_cell(*episodic, 'count')} | {_cell(*saved, 'count')} | "
+            f"{_cell(*by_steps, 'count')} | {_cell(*saved_by_steps, 'count')} | {_cell(*late, 'return')} |"
         )
     return "\n".join(lines) + (
         "\n\nEpisodic resets: the resets an agent without a reset agent would have needed, one per forward "
-        "episode (the authors' release logs it as the baseline).\n"
+        "episode (the authors' release logs it as the baseline). Same forward steps: the resets an episodic "
+        "agent needs to take as many forward steps as the run did, in full H_f-step episodes (one per H_f "
+        "steps); it counts no forward episode the trigger ended before its first step.\n"
     )
 
 

@@ -87,6 +87,7 @@ def test_a_budget_compares_runs_as_they_stood_at_that_step(tmp_path):
         csv.writer(f).writerows([header, *rows])
     with open(folder / "eval.csv", "w", newline="") as f:
         csv.writer(f).writerows([["frames", "forward_return"], [1000, 1.0], [2000, 2.0], [3000, 6.0], [4000, 30.0]])
+    (folder / "config.yaml").write_text("task: {forward_horizon: 60}\n")
     report.report([tmp_path / "runs"], tmp_path / "out", budget=3000)
     table = (tmp_path / "out" / "table1.md").read_text()
     # at 3000 steps: return mean(1, 2, 6) = 3.00; manual 7; share 1500 / 3000 = 50.0%; success 6 / 13 = 46.2%
@@ -94,7 +95,8 @@ def test_a_budget_compares_runs_as_they_stood_at_that_step(tmp_path):
            "50.0% ± 0.0 (paper 66.3%) | 46.2% ± 0.0 (paper 96.6%) |" in table
     # 15 forward episodes, 15 - 7 = 8 saved; last quarter of 3000 steps from the row at 2000 (the last at or
     # before 2250): (7 - 5) manual resets in 1000 steps = 2.00 per 1k
-    assert "| peg-insertion (insert) | ours | 0.1 | 1 | 7 ± 0 | 15 ± 0 | 8 ± 0 | 2.00 ± 0.00 |" in table
+    # same forward steps: 1500 forward steps at 3000 in 60-step episodes = 25 resets, 25 - 7 = 18 saved
+    assert "| peg-insertion (insert) | ours | 0.1 | 1 | 7 ± 0 | 15 ± 0 | 8 ± 0 | 25 ± 0 | 18 ± 0 | 2.00 ± 0.00 |" in table
     assert "at a budget of 3000 steps" in table
 
 
