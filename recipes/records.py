@@ -171,9 +171,10 @@ class RunRecord:
             # an episodic agent needs one reset per forward episode (the release logs it as the baseline)
             "episodic_resets": c["forward_episodes"],
             "resets_saved": c["forward_episodes"] - c["manual_resets"],
-            # an episodic agent taking the same forward steps in full H_f-step episodes: one reset per H_f
-            # steps (fewer than one per forward episode where the trigger cut episodes short or at once)
-            "episodic_resets_for_forward_steps": math.ceil(c["forward_steps"] / int(cfg.task.forward_horizon)),
+            # the release's "baseline hard reset" counter: one per H_f calls of the forward agent's step,
+            # triggered ones included (the tasks never end by themselves); it counts no reset for forward
+            # episodes the trigger cut short, where the count above counts one each
+            "baseline_hard_resets": (c["forward_steps"] + c["triggered_resets"]) // int(cfg.task.forward_horizon),
             "forward_share": collector.forward_share,
             "reset_success_rate": collector.reset_success_rate,
             **success_rate_by_quarter(self.progress.path),

@@ -379,8 +379,8 @@ def test_diagnostics_score_every_forward_step_and_resets_csv_has_every_reset_epi
     summary = json.loads((tmp_path / "summary.json").read_text())
     assert summary["episodic_resets"] == int(progress["forward_episodes"])
     assert summary["resets_saved"] == summary["episodic_resets"] - summary["manual_resets"]
-    # TINY's H_f = 20: an episodic agent taking the run's forward steps needs one reset per 20 of them
-    assert summary["episodic_resets_for_forward_steps"] == -(-int(progress["forward_steps"]) // 20)
+    # the release's baseline, TINY's H_f = 20: one hard reset per 20 forward step calls, triggered ones included
+    assert summary["baseline_hard_resets"] == (int(progress["forward_steps"]) + int(progress["triggered_resets"])) // 20
 
 
 def test_options_beside_the_paper_a_pessimistic_start_and_the_reset_agents_own_tau(tmp_path):
