@@ -323,10 +323,10 @@ def _by(runs: list[Run], *attributes: str) -> dict[tuple, list[Run]]:
 
 
 def _steps_label(value: float, _position=None) -> str:
-    """Step counts on an axis as 0, 500, 20k, 1.5M."""
+    """Step counts on an axis as 0, 500, 2k, 12.5k, 1.5M."""
     if abs(value) >= 1e6:
         return f"{value / 1e6:g}M"
-    return f"{value / 1e3:g}k" if abs(value) >= 1e4 else f"{value:g}"
+    return f"{value / 1e3:g}k" if abs(value) >= 1e3 else f"{value:g}"
 
 
 def _save(fig, path: Path, written: list[Path]) -> None:

@@ -132,3 +132,7 @@ def test_runs_short_of_the_budget_are_left_out_of_their_groups_means(tmp_path):
     assert "| ours | 0.1 | 1 | 40 ± 0 |" in table
     assert "| peg-insertion (insert) | LNT | 0.1 | 1 | 750 (in progress) |" in table
     assert "Left out of the means, still short of the budget: ours seed 1 at 500 steps." in table
+
+
+def test_step_axes_read_in_thousands_and_millions():
+    assert [report._steps_label(v) for v in (0, 500, 2000, 12500, 150000, 1.5e6)] == ["0", "500", "2k", "12.5k", "150k", "1.5M"]
