@@ -56,6 +56,10 @@ def validate(cfg: DictConfig) -> None:
     sampling = OmegaConf.select(cfg, "algo.nstep_sampling", default="episode")
     if cfg.algo.name == "ours" and sampling not in ("episode", "transition"):
         problems.append(f"algo.nstep_sampling must be episode or transition, got {sampling!r}")
+    for flag in ("speed.accelerate", "speed.fused_adam", "speed.retain_memory"):
+        value = OmegaConf.select(cfg, flag, default=True)
+        if not isinstance(value, bool):
+            problems.append(f"{flag} must be true or false, got {value!r}")
     compile_agents = OmegaConf.select(cfg, "speed.compile", default=[])
     if not OmegaConf.is_list(compile_agents) or not set(compile_agents) <= {"forward", "reset"}:
         problems.append(f"speed.compile must be a list of agents among forward, reset; got {compile_agents!r}")

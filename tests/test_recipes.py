@@ -184,6 +184,7 @@ def test_a_crash_while_checkpointing_keeps_the_previous_checkpoint(tmp_path):
         (["total_steps=0"], "total_steps must be a positive integer"),
         (["speed.compile=[backward]"], "speed.compile must be a list of agents among forward, reset"),
         (["speed.matmul_precision=fp16"], "speed.matmul_precision must be one of auto, ieee, bf16"),
+        (["speed.accelerate=fast"], "speed.accelerate must be true or false"),
     ],
 )
 def test_bad_configs_fail_before_training(tmp_path, overrides, message):
