@@ -138,14 +138,12 @@ def _train(cfg: DictConfig) -> dict:
         interrupted = True
         log.warning("interrupted at step %d: checkpointing", collector.frames)
     except NonFiniteLoss as err:
-        record.close()
         path = state.save()  # the update stopped before it changed anything: the last good state
         raise TrainingDiverged(
             f"non-finite loss at step {collector.frames} ({err}); the last good state is checkpointed in {path}. "
             "Lower the learning rates or check the inputs."
         ) from err
     except RobotFault as err:  # the robot must not go on (emergency stop, too many protective stops...)
-        record.close()
         record.mark_time()
         path = state.save()
         raise RobotStopped(f"{err} The run is checkpointed in {path}; resume=true continues it.") from err

@@ -245,13 +245,18 @@ class EnsembleValueOperator(TensorDictModuleBase):
         """
         batch = observation.shape[:-1]
         obs, act = self._check_inputs(observation, action)
-        f = self.members_forward(obs, act, *self.layer_tensors(params))  # f_i(s, a), trained
-        if self.has_prior:
-            g = self.members_forward(obs, act, *self.layer_tensors(params, "prior_"))  # g_i(s, a), fixed
-            logit = f + self.prior_scale * g  # randomized prior functions (Osband et al., 2018)
-        else:
-            logit = f
-        return logit.transpose(0, 1).reshape(*batch, self.num_members)
+        return self.members_logits(obs, act, params).transpose(0, 1).reshape(*batch, self.num_members)
+
+    def members_logits(self, obs: torch.Tensor, action: torch.Tensor, params: TensorDictBase | None = None) -> torch.Tensor:
+        """``[M, N]`` logits ``f_i(s, a) + beta * g_i(s, a)`` of the members on ``obs`` ``[N, d]`` and
+        ``action`` ``[N, a]``, or on per-member inputs ``[M, N, d]`` and ``[M, N, a]`` (the plain
+        products broadcast either)."""
+        plain = EnsembleValueOperator.members_forward
+        f = plain(obs, action, *self.layer_tensors(params))  # f_i(s, a), trained
+        if not self.has_prior:
+            return f
+        g = plain(obs, action, *self.layer_tensors(params, "prior_"))  # g_i(s, a), fixed
+        return f + self.prior_scale * g  # randomized prior functions (Osband et al., 2018)
 
     def observation_from(self, tensordict: TensorDictBase) -> torch.Tensor:
         """The observation entries this module reads, joined along the last dimension."""

@@ -18,8 +18,6 @@ from collections.abc import Iterable, Sequence
 
 import torch
 
-from .ensemble import EnsembleValueOperator
-
 __all__ = ["RunMaskedAdam", "RunMaskedSoftUpdate", "RunMLP", "run_logits"]
 
 
@@ -198,11 +196,7 @@ def run_logits(ensemble, observation: torch.Tensor, action: torch.Tensor, runs: 
     def per_member(x: torch.Tensor) -> torch.Tensor:  # [S, N, *] -> [S*K, N, *]: run s's rows for its K members
         return x.unsqueeze(1).expand(runs, k, *x.shape[1:]).reshape(members, n, x.shape[-1])
 
-    obs, act = per_member(observation), per_member(action.to(observation.dtype))
-    plain = EnsembleValueOperator.members_forward  # the reference products broadcast per-member inputs
-    logit = plain(obs, act, *ensemble.layer_tensors(params))
-    if ensemble.has_prior:
-        logit = logit + ensemble.prior_scale * plain(obs, act, *ensemble.layer_tensors(params, "prior_"))
+    logit = ensemble.members_logits(per_member(observation), per_member(action.to(observation.dtype)), params)
     return logit.reshape(runs, k, n).transpose(1, 2)
 
 

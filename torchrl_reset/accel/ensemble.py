@@ -152,9 +152,6 @@ class FastEnsembleValueOperator(EnsembleValueOperator):
         if "_prior_cache" not in self.__dict__:
             self._prior_cache = _PriorStateCache()
 
-    def members_forward(self, obs, action, weights, biases, action_weight) -> torch.Tensor:
-        return self._members_forward(obs, action, weights, biases, action_weight)
-
     @staticmethod
     def _trunk(obs: torch.Tensor, weights: list[torch.Tensor], biases: list[torch.Tensor]) -> torch.Tensor:
         """The state-only part of M stacked members on shared [N, d] observations: layer 0 and the
@@ -190,7 +187,7 @@ class FastEnsembleValueOperator(EnsembleValueOperator):
         return hidden.squeeze(-1)
 
     @classmethod
-    def _members_forward(
+    def members_forward(
         cls,
         obs: torch.Tensor,
         action: torch.Tensor,
@@ -212,17 +209,17 @@ class FastEnsembleValueOperator(EnsembleValueOperator):
         k = self.num_members
         weights, biases, action_weight = self.layer_tensors(params)
         if not self.has_prior:
-            out = self._members_forward(obs, act, weights, biases, action_weight)
+            out = self.members_forward(obs, act, weights, biases, action_weight)
         elif torch.is_grad_enabled():
             # Separate prior pass: autograd then computes no weight gradients for the frozen half.
-            out = self._members_forward(obs, act, weights, biases, action_weight)
+            out = self.members_forward(obs, act, weights, biases, action_weight)
             p_weights, p_biases, p_action_weight = self.layer_tensors(params, "prior_")
-            prior = self._members_forward(obs, act, p_weights, p_biases, p_action_weight)
+            prior = self.members_forward(obs, act, p_weights, p_biases, p_action_weight)
             out = out + self.prior_scale * prior
         else:
             # Without gradients, trained and prior members run as one stack of 2K.
             p_weights, p_biases, p_action_weight = self.layer_tensors(params, "prior_")
-            stacked = self._members_forward(
+            stacked = self.members_forward(
                 obs,
                 act,
                 [torch.cat(pair) for pair in zip(weights, p_weights)],
