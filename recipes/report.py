@@ -67,14 +67,15 @@ class Run:
     evaluations up to it), so that runs that went on longer are compared at the same budget."""
 
     def __init__(self, folder: Path, budget: int | None = None):
+        from omegaconf import OmegaConf
+
         self.folder = folder
         self.budget = budget
+        self.config = OmegaConf.load(folder / "config.yaml") if (folder / "config.yaml").exists() else None
         if (folder / "summary.json").exists():
             self.summary = json.loads((folder / "summary.json").read_text())
         else:  # a run still going (or killed): read as it stands from its config and logs
-            from omegaconf import OmegaConf
-
-            cfg = OmegaConf.load(folder / "config.yaml")
+            cfg = self.config
             self.summary = {"task": cfg.task.name, "algo": cfg.algo.name, "seed": int(cfg.seed),
                             "p_thresh": float(cfg.task.p_thresh), "finished": False}
             self.summary.update(self._at_budget(budget if budget is not None else 2**62))
@@ -127,7 +128,7 @@ class Run:
         """Resets an episodic agent would have needed (one per forward episode) and the manual resets
         per 1000 steps over the last quarter of the (budgeted) run."""
         progress = self.table("progress.csv")
-        out = {"episodic_resets": math.nan, "episodic_by_steps": math.nan, "late_manual_rate": math.nan}
+        out = {"episodic_resets": math.nan, "baseline_hard_resets": math.nan, "late_manual_rate": math.nan}
         frames = progress.get("frames", np.zeros(0))
         if not len(frames):
             return out
@@ -135,11 +136,15 @@ class Run:
             out["episodic_resets"] = float(progress["forward_episodes"][-1])
             if self.budget is None and self.summary.get("episodic_resets") is not None:
                 out["episodic_resets"] = float(self.summary["episodic_resets"])  # at the same step as manual_resets
-        horizon = self._forward_horizon()
+        from omegaconf import OmegaConf
+
+        horizon = None if self.config is None else OmegaConf.select(self.config, "task.forward_horizon", default=None)
         if "forward_steps" in progress and "triggered_resets" in progress and horizon:
             # the release's baseline: one hard reset per H_f forward step calls, triggered ones included
             calls = progress["forward_steps"][-1] + progress["triggered_resets"][-1]
-            out["episodic_by_steps"] = float(calls // horizon)
+            out["baseline_hard_resets"] = float(calls // horizon)
+        if self.budget is None and self.summary.get("baseline_hard_resets") is not None:
+            out["baseline_hard_resets"] = float(self.summary["baseline_hard_resets"])  # as episodic_resets above
         if "manual_resets" in progress and len(frames) >= 2:
             end = frames[-1]
             start = int(np.searchsorted(frames, end - end / 4, side="right")) - 1
@@ -147,16 +152,6 @@ class Run:
                 manual = progress["manual_resets"]
                 out["late_manual_rate"] = float(1000 * (manual[-1] - manual[start]) / (end - frames[start]))
         return out
-
-
-    def _forward_horizon(self) -> int | None:
-        """H_f from the run's ``config.yaml`` (None without one)."""
-        path = self.folder / "config.yaml"
-        if not path.exists():
-            return None
-        from omegaconf import OmegaConf
-
-        return OmegaConf.select(OmegaConf.load(path), "task.forward_horizon", default=None)
 
 
 def _float(value: str) -> float:
@@ -277,8 +272,8 @@ def table1(runs: list[Run]) -> str:
         episodic = _mean_std([r.summary["episodic_resets"] for r in members])
         saved = _mean_std([r.summary["episodic_resets"] - r.summary["manual_resets"] for r in members])
         late = _mean_std([r.summary["late_manual_rate"] for r in members])
-        by_steps = _mean_std([r.summary["episodic_by_steps"] for r in members])
-        saved_by_steps = _mean_std([r.summary["episodic_by_steps"] - r.summary["manual_resets"] for r in members])
+        by_steps = _mean_std([r.summary["baseline_hard_resets"] for r in members])
+        saved_by_steps = _mean_std([r.summary["baseline_hard_resets"] - r.summary["manual_resets"] for r in members])
         lines.append(
             f"| {TASK_TITLES.get(task, task)} | {ALGO_TITLES.get(algo, algo)} | {p_thresh} | {len(members)} | "
             f"{_cell(*manual, 'count')} | {_cell(*episodic, 'count')} | {_cell(*saved, 'count')} | "
