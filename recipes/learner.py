@@ -65,19 +65,29 @@ class Learner:
 
     def observe(self, batch, phase: str) -> None:
         """Lines 16 (forward) and 23 (reset): store the transition, then update that agent."""
+        sample = self.store(batch, phase)
+        if sample is not None:
+            self.record_losses(phase, self._update(phase, sample, self.loss_names(phase)))
+
+    def store(self, batch, phase: str):
+        """Stores the transition in its phase's buffer; returns that agent's update batch when it updates
+        at this step (past its heat-up, and in time on a robot), else None."""
         updating = self.collector.counters[f"{phase}_steps"] > self.heat_up
         if phase == "forward":
             self.forward_rb.extend(batch.select(*self.forward_keys, strict=False))
-            if updating and self._fits("forward"):
-                out = self._update("forward", self.forward_rb.sample(), ("loss_actor", "loss_value"))
-                self.last_losses.update(loss_forward_actor=out["loss_actor"], loss_forward_critic=out["loss_value"])
-        else:
-            self.reset_rb.extend(batch.select(*self.reset_keys, strict=False))
-            if updating and self._fits("reset"):
-                sample = self._reset_sample()
-                names = ("loss_actor", "loss_classifier") if self.ours else ("loss_actor", "loss_value")
-                out = self._update("reset", sample, names)
-                self.last_losses.update(loss_reset_actor=out["loss_actor"], loss_reset_critic=out[names[1]])
+            return self.forward_rb.sample() if updating and self._fits("forward") else None
+        self.reset_rb.extend(batch.select(*self.reset_keys, strict=False))
+        return self._reset_sample() if updating and self._fits("reset") else None
+
+    def loss_names(self, phase: str) -> tuple[str, str]:
+        """The loss entries that agent ``phase`` sums and minimises (the actor's first)."""
+        if phase == "reset" and self.ours:
+            return ("loss_actor", "loss_classifier")
+        return ("loss_actor", "loss_value")
+
+    def record_losses(self, phase: str, losses: dict[str, float]) -> None:
+        actor, critic = self.loss_names(phase)
+        self.last_losses.update({f"loss_{phase}_actor": losses[actor], f"loss_{phase}_critic": losses[critic]})
 
     def _reset_sample(self):
         """The reset agent's batch: ours, replay rows and as many success examples; LNT, its rewards."""

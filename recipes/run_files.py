@@ -86,18 +86,21 @@ class TrainingState:
         self.forward, self.reset, self.collector = forward, reset, collector
         self.buffers = {"forward_buffer": forward_rb, "reset_buffer": reset_rb}
         self.history: dict = {}
+        self.before_save = None  # called first by save(): a batch writes the run's optimizer state back here
 
     def save(self) -> Path:
         """A complete checkpoint at the collector's step (crash-safe: see :class:`Checkpoints`)."""
         cfg = self.cfg
         meta = {"task": cfg.task.name, "algo": cfg.algo.name, "seed": int(cfg.seed), "frames": self.collector.frames}
+        if self.before_save is not None:
+            self.before_save()
         return self.checkpoints.save(self.collector.frames, self._write, meta)
 
     def _write(self, folder: Path) -> None:
         torch.save(
             {
-                "forward_loss": self.forward.loss.state_dict(),
-                "reset_loss": self.reset.loss.state_dict(),
+                "forward_loss": _own(self.forward.loss.state_dict()),
+                "reset_loss": _own(self.reset.loss.state_dict()),
                 "forward_optimizer": self.forward.optimizer.state_dict(),
                 "reset_optimizer": self.reset.optimizer.state_dict(),
                 "collector": self.collector.state_dict(),
@@ -127,6 +130,12 @@ class TrainingState:
         np.random.set_state(state["rng"]["numpy"])
         random.setstate(state["rng"]["python"])
         return folder
+
+
+def _own(state: dict) -> dict:
+    """The state dict's tensors in storage of their own: torch.save writes a view's whole storage, and a
+    run of a batch keeps its parameters as views into the batch's stacked tensors."""
+    return {k: v.clone() if isinstance(v, torch.Tensor) else v for k, v in state.items()}
 
 
 @contextmanager

@@ -4,6 +4,7 @@
     python recipes/train.py task=cliff_cheetah algo=lnt preset=quick              # a short CPU run
     python recipes/train.py task=cliff_cheetah algo=lnt preset=quick resume=true  # continue a killed run
     python recipes/train.py -m task=peg_insertion_insert algo=ours,lnt,lnt_sparse seed=0,1,2  # a grid, in parallel
+    python recipes/train.py task=peg_insertion_insert algo=ours seeds=5  # seeds 0-4 in one process, updates batched
 
 Tasks: cliff_cheetah, cliff_walker, peg_insertion_insert, peg_insertion_remove, ball_in_cup_catch,
 ball_in_cup_throw. Everything lands in ``run_dir`` (default ``runs/<task>/<algo>/seed<seed>``):
@@ -20,6 +21,7 @@ import logging
 import math
 import random
 import sys
+from dataclasses import dataclass
 from pathlib import Path
 
 import hydra
@@ -30,6 +32,7 @@ from omegaconf import DictConfig, OmegaConf
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from agents import make_forward_agent, make_reset_agent  # noqa: E402
+from batch import batch_seeds, run_configs, train_batch  # noqa: E402
 from buffers import make_buffers  # noqa: E402
 from config_checks import ConfigError, reset_horizon, should_resume, torch_threads, validate  # noqa: E402
 from learner import Learner, NonFiniteLoss, make_collector  # noqa: E402
@@ -77,12 +80,63 @@ def set_up_process(cfg: DictConfig) -> str:
     return precision
 
 
-def _train(cfg: DictConfig) -> dict:
-    validate(cfg)
-    run_dir = Path(cfg.run_dir)
-    matmul_precision = set_up_process(cfg)
+@dataclass
+class Run:
+    """One run's pieces: its agents, envs, collector, buffers, training state, records and learner."""
 
-    # Algorithm 1, lines 1-4: the agents, the replay buffers, the env (S* lives in the collector)
+    cfg: DictConfig
+    forward: object
+    reset: object
+    env: object
+    trigger: object
+    eval_env: object
+    eval_trigger: object
+    collector: DualCollector
+    forward_rb: object
+    reset_rb: object
+    state: TrainingState
+    record: RunRecord
+    learner: Learner
+    robot: object
+    matmul_precision: str
+
+    def evaluation(self) -> dict:
+        """One forward and one reset episode without noise."""
+        cfg = self.cfg
+        return evaluate(self.eval_env, self.eval_trigger, self.forward.actor, self.reset.actor,
+                        horizon=int(cfg.task.forward_horizon), reset_horizon=reset_horizon(cfg),
+                        min_reset_steps=int(cfg.reset.min_steps), gamma=float(cfg.gamma))
+
+    def after_step(self, batch, phase: str) -> None:
+        """The step's record, then the evaluation, log row and checkpoint that fall on this step."""
+        cfg = self.cfg
+        self.record.step(batch, phase)
+        frames = self.collector.frames
+        if frames % int(cfg.eval_every) == 0:
+            self.record.evaluation(self.evaluation())
+        if frames % int(cfg.log_every) == 0:
+            self.record.log(self.learner, self.env)
+        if frames % int(cfg.checkpoint_every) == 0:
+            self.checkpoint()
+
+    def checkpoint(self):
+        self.record.mark_time()
+        return self.state.save()
+
+    def finish(self, interrupted: bool) -> dict:
+        """The last checkpoint and the summary; closes the envs."""
+        self.checkpoint()
+        finished = self.collector.frames >= int(self.cfg.total_steps) and not interrupted
+        summary = self.record.summary(finished=finished, learner=self.learner, env=self.env, robot=self.robot,
+                                      matmul_precision=self.matmul_precision)
+        self.collector.shutdown()
+        self.eval_env.close()
+        return summary
+
+
+def build_run(cfg: DictConfig, matmul_precision: str) -> Run:
+    """Algorithm 1, lines 1-4, for one run (resumed from its checkpoint when ``resume`` says so)."""
+    run_dir = Path(cfg.run_dir)
     obs_dim, action_spec = task_dimensions(cfg)
     forward = make_forward_agent(cfg, obs_dim, action_spec)  # pi_f and Q
     reset = make_reset_agent(cfg, obs_dim, action_spec)  # pi_r and the classifiers C_i (LNT: the Q_i)
@@ -90,7 +144,7 @@ def _train(cfg: DictConfig) -> dict:
         agent.loss.to(cfg.device)
     env, trigger = make_task_env(cfg, reset)  # the trigger watches every forward action
     eval_env, eval_trigger = make_task_env(cfg, reset, for_eval=True)
-    collector = make_collector(cfg, env, forward, reset)
+    collector = make_collector(cfg, env, forward, reset)  # S* lives in the collector
     eval_env.set_seed(int(cfg.seed) + EVAL_SEED_OFFSET)
     forward_rb, reset_rb = make_buffers(cfg)
 
@@ -107,11 +161,14 @@ def _train(cfg: DictConfig) -> dict:
     robot = realtime_env(env)
     learner = Learner(cfg, forward, reset, forward_rb, reset_rb, collector, matmul_precision, robot,
                       last_losses=record.history["last_losses"])
+    return Run(cfg, forward, reset, env, trigger, eval_env, eval_trigger, collector, forward_rb, reset_rb, state,
+               record, learner, robot, matmul_precision)
 
-    def evaluation() -> dict:  # one forward and one reset episode without noise
-        return evaluate(eval_env, eval_trigger, forward.actor, reset.actor, horizon=int(cfg.task.forward_horizon),
-                        reset_horizon=reset_horizon(cfg), min_reset_steps=int(cfg.reset.min_steps),
-                        gamma=float(cfg.gamma))
+
+def _train(cfg: DictConfig) -> dict:
+    validate(cfg)
+    run = build_run(cfg, set_up_process(cfg))
+    collector = run.collector
 
     # Algorithm 1, lines 5-28: each batch is one action of a forward or a reset episode
     interrupted = False
@@ -120,16 +177,8 @@ def _train(cfg: DictConfig) -> dict:
             for batch in collector:
                 batch = batch.to(cfg.device)
                 phase = DualCollector.phase_of(batch)
-                learner.observe(batch, phase)  # lines 16 / 23: store the transition, update that agent
-                record.step(batch, phase)
-                frames = collector.frames
-                if frames % int(cfg.eval_every) == 0:
-                    record.evaluation(evaluation())
-                if frames % int(cfg.log_every) == 0:
-                    record.log(learner, env)
-                if frames % int(cfg.checkpoint_every) == 0:
-                    record.mark_time()
-                    state.save()
+                run.learner.observe(batch, phase)  # lines 16 / 23: store the transition, update that agent
+                run.after_step(batch, phase)
                 if stop_requested:
                     interrupted = True
                     log.warning("SIGTERM at step %d: checkpointing", collector.frames)
@@ -138,38 +187,37 @@ def _train(cfg: DictConfig) -> dict:
         interrupted = True
         log.warning("interrupted at step %d: checkpointing", collector.frames)
     except NonFiniteLoss as err:
-        path = state.save()  # the update stopped before it changed anything: the last good state
+        path = run.state.save()  # the update stopped before it changed anything: the last good state
         raise TrainingDiverged(
             f"non-finite loss at step {collector.frames} ({err}); the last good state is checkpointed in {path}. "
             "Lower the learning rates or check the inputs."
         ) from err
     except RobotFault as err:  # the robot must not go on (emergency stop, too many protective stops...)
-        record.mark_time()
-        path = state.save()
+        path = run.checkpoint()
         raise RobotStopped(f"{err} The run is checkpointed in {path}; resume=true continues it.") from err
     finally:
-        record.close()
-    record.mark_time()
-    state.save()
-    finished = collector.frames >= int(cfg.total_steps) and not interrupted
-    summary = record.summary(finished=finished, learner=learner, env=env, robot=robot, matmul_precision=matmul_precision)
-    collector.shutdown()
-    eval_env.close()
-    return summary
+        run.record.close()
+    return run.finish(interrupted)
 
 
 @hydra.main(version_base="1.3", config_path="conf", config_name="config")
 def main(cfg: DictConfig) -> None:
     try:
-        summary = train(cfg)
+        seeds = batch_seeds(cfg)
+        summaries = [train(cfg)] if seeds is None else train_batch(cfg, seeds)
     except (ConfigError, RunFolderBusy, TrainingDiverged, RobotStopped) as err:
         print(f"error: {err}", file=sys.stderr)
         sys.exit({ConfigError: 2, RunFolderBusy: 2, TrainingDiverged: 3}.get(type(err), 4))
-    width = max(map(len, summary))
-    for key, value in summary.items():
-        print(f"{key:<{width}}  {value:.4g}" if isinstance(value, float) else f"{key:<{width}}  {value}")
-    print(_in_words(summary))
-    print(f"results in {cfg.run_dir}")
+    if seeds is None:
+        summary = summaries[0]
+        width = max(map(len, summary))
+        for key, value in summary.items():
+            print(f"{key:<{width}}  {value:.4g}" if isinstance(value, float) else f"{key:<{width}}  {value}")
+        print(_in_words(summary))
+        print(f"results in {cfg.run_dir}")
+        return
+    for summary, run_cfg in zip(summaries, run_configs(cfg, seeds, check=False)):
+        print(f"seed {summary['seed']}: {_in_words(summary)} Results in {run_cfg.run_dir}")
 
 
 def _in_words(summary: dict) -> str:

@@ -1,0 +1,211 @@
+"""Several runs in one process: ``python recipes/train.py task=... algo=... seeds=5``.
+
+S runs (seeds) of one task and algorithm advance in lockstep, one environment step each per
+iteration, and their agents are updated together: one batched update call per agent type serves
+every run whose agent updates at that step (:mod:`torchrl_reset.run_agents`). Everything else is
+each run's own, built exactly as for the run alone (:func:`train.build_run`): its environment and
+collector (so its own phase, forward or reset, its own episode counters, trigger decisions, H_f / H_r
+clocks, manual resets and success examples), its replay buffers, its random streams, its records
+and its checkpoints in its own ``runs/<task>/<algo>/seed<k>`` folder. A run of the batch therefore
+computes what the same seed computes alone, up to float32 rounding in the batched products
+(``tests/test_batch.py``), and each run's folder is a complete single run: ``report.py`` reads it,
+``resume`` continues it (alone or in a batch).
+"""
+from __future__ import annotations
+
+import contextlib
+import logging
+import random
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import torch
+from omegaconf import DictConfig, OmegaConf
+
+from config_checks import ConfigError, validate
+from learner import NonFiniteLoss
+from run_files import run_folder_lock, stop_on_sigterm
+from torchrl_reset import DualCollector
+from torchrl_reset.accel import matmul_products
+from torchrl_reset.run_agents import RunDDPGUpdate, RunRCEUpdate
+
+__all__ = ["batch_seeds", "run_configs", "RunRNG", "BatchedUpdates", "train_batch"]
+
+log = logging.getLogger("torchrl_reset.train")
+
+
+def batch_seeds(cfg: DictConfig) -> list[int] | None:
+    """``seeds``: null (one run, ``seed``), a count N (seeds ``seed .. seed + N - 1``) or a list of seeds."""
+    seeds = OmegaConf.select(cfg, "seeds", default=None)
+    if seeds is None:
+        return None
+    if isinstance(seeds, bool):
+        raise ConfigError(f"seeds must be a count or a list of seeds, got {seeds!r}")
+    if isinstance(seeds, int):
+        if seeds < 1:
+            raise ConfigError(f"seeds (a count) must be >= 1, got {seeds}")
+        return list(range(int(cfg.seed), int(cfg.seed) + seeds))
+    if OmegaConf.is_list(seeds) and seeds and all(isinstance(s, int) and not isinstance(s, bool) for s in seeds):
+        if len(set(seeds)) != len(seeds):
+            raise ConfigError(f"seeds lists a seed twice: {list(seeds)}")
+        return [int(s) for s in seeds]
+    raise ConfigError(f"seeds must be a count or a non-empty list of integer seeds, got {seeds!r}")
+
+
+def run_configs(cfg: DictConfig, seeds: list[int], *, check: bool = True) -> list[DictConfig]:
+    """One configuration per seed, each validated as a run alone (unless ``check=False``), with its own ``run_dir``."""
+    configs = []
+    for seed in seeds:
+        run_cfg = OmegaConf.create(OmegaConf.to_container(cfg, resolve=False))
+        run_cfg.seed = seed
+        run_cfg.seeds = None
+        run_cfg.progress_bar = bool(cfg.progress_bar) and not configs  # one bar: the batch moves as one
+        OmegaConf.resolve(run_cfg)
+        configs.append(run_cfg)
+    if not check:
+        return configs
+    folders = [str(Path(c.run_dir).resolve()) for c in configs]
+    if len(set(folders)) != len(folders):
+        raise ConfigError("the runs of a batch need one run_dir each; run_dir must contain ${seed} "
+                          f"(it is {cfg._get_node('run_dir')._value()!r}).")
+    problems = []
+    if OmegaConf.select(cfg, "speed.compile", default=[]):
+        problems.append("speed.compile is not available for a batch (its updates are batched functions)")
+    if (cfg.get("env") or {}).get("backend", "sim") != "sim":
+        problems.append("a batch runs simulated tasks only (one robot is one run)")
+    if problems:
+        raise ConfigError("invalid configuration for seeds=...:\n  - " + "\n  - ".join(problems))
+    for run_cfg in configs:
+        validate(run_cfg)
+    return configs
+
+
+class RunRNG:
+    """A run's own random streams (torch's, numpy's and Python's global generators), swapped in while
+    that run acts so that each run draws exactly the numbers it would draw alone."""
+
+    def __init__(self) -> None:
+        self.capture()
+
+    def capture(self) -> None:
+        self.torch, self.numpy, self.python = torch.get_rng_state(), np.random.get_state(), random.getstate()
+
+    @contextlib.contextmanager
+    def active(self) -> Iterator[None]:
+        torch.set_rng_state(self.torch)
+        np.random.set_state(self.numpy)
+        random.setstate(self.python)
+        try:
+            yield
+        finally:
+            self.capture()
+
+
+class BatchedUpdates:
+    """The S runs' forward agents and reset agents, each kind updated by one call per step."""
+
+    def __init__(self, runs: list) -> None:
+        cfg = runs[0].cfg
+        self.runs = runs
+        self.forward = RunDDPGUpdate([r.forward.loss for r in runs], [r.forward.optimizer for r in runs],
+                                     gamma=float(cfg.gamma), tau=float(cfg.tau))
+        reset_tau = OmegaConf.select(cfg, "reset.tau", default=None)
+        reset_tau = float(cfg.tau if reset_tau is None else reset_tau)
+        if cfg.algo.name == "ours":
+            self.reset = RunRCEUpdate([r.reset.loss for r in runs], [r.reset.optimizer for r in runs], tau=reset_tau)
+        else:
+            self.reset = RunDDPGUpdate([r.reset.loss for r in runs], [r.reset.optimizer for r in runs],
+                                       gamma=float(cfg.gamma), tau=reset_tau, reward_key="lnt_reward")
+        self.precision = runs[0].matmul_precision
+        for s, run in enumerate(runs):  # a checkpoint holds the run's own optimizer state, as a run alone's
+            run.state.before_save = (lambda s=s: self.export(s))
+
+    def export(self, run: int) -> None:
+        self.forward.export(run)
+        self.reset.export(run)
+
+    def apply(self, phase: str, requests: dict[int, object]) -> None:
+        """One update of agent ``phase`` for the runs in ``requests`` (run index -> its sample)."""
+        if not requests:
+            return
+        update = self.forward if phase == "forward" else self.reset
+        runs = sorted(requests)
+        with matmul_products(self.precision):
+            try:
+                losses = update.update([requests[s] for s in runs], runs)
+            except FloatingPointError as err:
+                raise NonFiniteLoss(f"{phase} agent, {err}") from err
+        for j, s in enumerate(runs):
+            learner = self.runs[s].learner
+            learner.record_losses(phase, {n: float(v[j]) for n, v in losses.items()})
+
+
+def train_batch(cfg: DictConfig, seeds: list[int]) -> list[dict]:
+    """Trains (or resumes) the runs of ``seeds`` together; returns their summaries."""
+    configs = run_configs(cfg, seeds)
+    with contextlib.ExitStack() as locks:
+        for run_cfg in configs:
+            Path(run_cfg.run_dir).mkdir(parents=True, exist_ok=True)
+            locks.enter_context(run_folder_lock(Path(run_cfg.run_dir)))
+        return _train_batch(configs)
+
+
+def _train_batch(configs: list[DictConfig]) -> list[dict]:
+    import train  # the single run's pieces (train imports this module)
+
+    precision = train.set_up_process(configs[0])
+    runs, streams = [], []
+    for run_cfg in configs:
+        # each run is built from its own seed, in the order a run alone draws its random numbers
+        torch.manual_seed(run_cfg.seed)
+        np.random.seed(run_cfg.seed)
+        random.seed(run_cfg.seed)
+        runs.append(train.build_run(run_cfg, precision))
+        streams.append(RunRNG())
+    updates = BatchedUpdates(runs)
+    steps = [iter(run.collector) for run in runs]
+    done = [False] * len(runs)
+    interrupted = False
+    try:
+        with stop_on_sigterm() as stop_requested:
+            while not all(done):
+                stepped, requests = [], {"forward": {}, "reset": {}}
+                for s, run in enumerate(runs):  # lines 5-15 / 17-22 of each run: its own env step
+                    if done[s]:
+                        continue
+                    with streams[s].active():
+                        batch = next(steps[s], None)
+                        if batch is None:
+                            done[s] = True
+                            continue
+                        batch = batch.to(run.cfg.device)
+                        phase = DualCollector.phase_of(batch)
+                        sample = run.learner.store(batch, phase)  # its sample, from its own stream
+                    if sample is not None:
+                        requests[phase][s] = sample
+                    stepped.append((s, batch, phase))
+                for phase in ("forward", "reset"):  # lines 16 / 23 of every run, one call per agent type
+                    updates.apply(phase, requests[phase])
+                for s, batch, phase in stepped:
+                    with streams[s].active():
+                        runs[s].after_step(batch, phase)
+                if stop_requested:
+                    interrupted = True
+                    log.warning("SIGTERM at step %d: checkpointing the batch", max(r.collector.frames for r in runs))
+                    break
+    except KeyboardInterrupt:
+        interrupted = True
+        log.warning("interrupted: checkpointing the batch")
+    except NonFiniteLoss as err:
+        paths = [str(run.state.save()) for run in runs]  # the update stopped before it changed anything
+        raise train.TrainingDiverged(f"non-finite loss ({err}); every run's last good state is checkpointed "
+                                     f"({', '.join(paths)}). Lower the learning rates or check the inputs.") from err
+    finally:
+        for run in runs:
+            run.record.close()
+    summaries = []
+    for s, run in enumerate(runs):
+        with streams[s].active():
+            summaries.append(run.finish(interrupted))
+    return summaries

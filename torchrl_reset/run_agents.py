@@ -1,0 +1,400 @@
+"""S runs' agents updated by one call: the DDPG and RCE updates batched along a run dimension.
+
+Each run keeps its own modules (its policy, its critic or classifier ensemble, its loss module with
+its target copies), built exactly as for a run alone, so that acting, the trigger, evaluation and
+checkpoints work on each run as before. :func:`bind_runs` then moves the S runs' tensors into one
+stacked tensor ``[S, *shape]`` and makes every run's tensor a view of its slice: the modules keep
+their identity, their values are the stacked tensor's. An update of ``RunDDPGUpdate`` or
+``RunRCEUpdate`` computes the losses of the runs that acted in one pass of batched products (run
+``s`` sees only its own parameters and its own sample), takes one :class:`~torchrl_reset.runs.RunMaskedAdam`
+step and one :class:`~torchrl_reset.runs.RunMaskedSoftUpdate` for those runs, and leaves every other
+run's parameters, targets and optimizer state exactly as they were.
+
+The losses are the single-run losses, per run: :class:`~torchrl.objectives.DDPGLoss` (TD(0) target,
+squared error, means over the batch and the members) and :class:`~torchrl_reset.RCELoss` (Eq. 2-3,
+built from the same :func:`~torchrl_reset.rce_label` and :func:`~torchrl_reset.label_weight`). They
+agree with the run alone to float32 rounding, not bit for bit: batched products sum in another order
+(``tests/test_run_agents.py``).
+"""
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import torch
+import torch.nn.functional as F
+from tensordict import TensorDict, TensorDictBase
+from torch import nn
+from torchrl.modules import TanhModule
+
+from .ensemble import EnsembleValueOperator
+from .rce_loss import label_weight, rce_label
+from .runs import RunMaskedAdam, RunMaskedSoftUpdate
+
+__all__ = ["bind_runs", "RunPolicies", "RunEnsembles", "RunDDPGUpdate", "RunRCEUpdate"]
+
+
+def bind_runs(tensors: Sequence[torch.Tensor], *, trainable: bool = False) -> torch.Tensor:
+    """One ``[S, *shape]`` tensor holding the S runs' tensors; each run's tensor becomes a view of its slice.
+
+    The run tensors stay the same Python objects (a module, its loss, its optimizer still hold them);
+    only their storage moves (``tensor.data = stacked[s]``). Writing into the stacked tensor writes
+    into every run's, and the reverse. ``trainable=True`` returns an ``nn.Parameter``.
+    """
+    tensors = list(tensors)
+    shapes = {tuple(t.shape) for t in tensors}
+    if not tensors or len(shapes) != 1:
+        raise ValueError(f"bind_runs needs one or more tensors of one shape, got shapes {sorted(shapes)}.")
+    stacked = torch.stack([t.detach() for t in tensors]).contiguous()
+    if trainable:
+        stacked = nn.Parameter(stacked)
+    for s, t in enumerate(tensors):
+        t.data = stacked.data[s]
+    return stacked
+
+
+def _select(stacked: torch.Tensor, runs: torch.Tensor | None) -> torch.Tensor:
+    return stacked if runs is None else stacked[runs]
+
+
+class RunPolicies:
+    """S runs' policies (the recipe's ReLU MLP then :class:`~torchrl.modules.TanhModule`) as one.
+
+    Args:
+        actors: one policy module per run, each holding its ``nn.Linear`` layers in order and one
+            ``TanhModule`` (the recipe's :func:`make_actor`), reading one observation key.
+        targets: optional, per run, the target copy's parameters in the loss module's naming
+            (``loss.target_actor_network_params``); bound too, for a delayed actor.
+    """
+
+    def __init__(self, actors: Sequence[nn.Module], targets: Sequence[TensorDictBase] | None = None) -> None:
+        self.runs = len(actors)
+        layers = [[(name, m) for name, m in actor.named_modules() if isinstance(m, nn.Linear)] for actor in actors]
+        tanh = [m for m in actors[0].modules() if isinstance(m, TanhModule)]
+        if not layers[0] or len(tanh) != 1 or len({len(x) for x in layers}) != 1:
+            raise ValueError("RunPolicies needs S policies of the same MLP layout ending in one TanhModule.")
+        self.tanh = tanh[0]
+        self.preactivation_key = self.tanh.in_keys[0]
+        self.action_key = self.tanh.out_keys[0]
+        in_keys = list(dict.fromkeys(actors[0].in_keys))
+        if len(in_keys) != 1:
+            raise ValueError(f"RunPolicies reads one observation key; the policy reads {in_keys}.")
+        self.in_key = in_keys[0]
+        depth = len(layers[0])
+        self.weights = [bind_runs([run[i][1].weight for run in layers], trainable=True) for i in range(depth)]
+        self.biases = [bind_runs([run[i][1].bias for run in layers], trainable=True) for i in range(depth)]
+        self.target_weights = self.target_biases = None
+        if targets is not None:
+            names = [name for name, _ in layers[0]]
+
+            def target(i: int, kind: str) -> list[torch.Tensor]:
+                return [t.get(tuple(names[i].split(".")) + (kind,)) for t in targets]
+
+            self.target_weights = [bind_runs(target(i, "weight")) for i in range(depth)]
+            self.target_biases = [bind_runs(target(i, "bias")) for i in range(depth)]
+        self.id_to_slot = {id(run[i][1].weight): (self.weights[i], s) for s, run in enumerate(layers) for i in range(depth)}
+        self.id_to_slot.update({id(run[i][1].bias): (self.biases[i], s) for s, run in enumerate(layers) for i in range(depth)})
+
+    def parameters(self) -> list[nn.Parameter]:
+        return [*self.weights, *self.biases]
+
+    def __call__(self, observation: torch.Tensor, runs: torch.Tensor | None = None, *, target: bool = False) -> torch.Tensor:
+        """The actions ``[S', N, a]`` of runs ``runs`` (all when None) on their observations ``[S', N, d]``."""
+        weights = self.target_weights if target else self.weights
+        biases = self.target_biases if target else self.biases
+        if weights is None:
+            raise ValueError("these policies have no target copy.")
+        h, last = observation, len(weights) - 1
+        for i, (w, b) in enumerate(zip(weights, biases)):
+            w, b = _select(w, runs), _select(b, runs)
+            h = torch.baddbmm(b.unsqueeze(1), h, w.transpose(1, 2))  # nn.Linear: x @ W^T + b, per run
+            if i < last:
+                h = h.relu()
+        td = TensorDict({self.preactivation_key: h}, batch_size=h.shape[:-1])
+        return self.tanh(td).get(self.action_key)
+
+
+_TRAINED = ("weight_{}", "bias_{}")
+
+
+class RunEnsembles:
+    """S runs' :class:`~torchrl_reset.EnsembleValueOperator` ensembles of K members, as S*K members.
+
+    Args:
+        ensembles: one ensemble per run (same sizes and prior scale).
+        targets: optional, per run, the target copy's tensors by name (``loss.target_value_network_params``
+            or ``loss.target_classifier_network_params``).
+    """
+
+    def __init__(self, ensembles: Sequence[EnsembleValueOperator], targets: Sequence[TensorDictBase] | None = None) -> None:
+        first = ensembles[0]
+        self.template, self.runs, self.members = first, len(ensembles), first.num_members
+        self.trained_names = [n.format(i) for i in range(first.num_layers) for n in _TRAINED] + ["action_weight"]
+        self.prior_names = ["prior_" + n for n in self.trained_names] if first.has_prior else []
+        self.live = {n: bind_runs([getattr(e, n) for e in ensembles], trainable=True) for n in self.trained_names}
+        # the priors never change: their stacks are copies (live and target priors are equal)
+        self.priors = {n: torch.stack([getattr(e, n).detach() for e in ensembles]) for n in self.prior_names}
+        self.target = None
+        if targets is not None:
+            self.target = {n: bind_runs([t.get(n) for t in targets]) for n in self.trained_names}
+        self.id_to_slot = {id(getattr(e, n)): (self.live[n], s) for s, e in enumerate(ensembles) for n in self.trained_names}
+
+    def parameters(self) -> list[nn.Parameter]:
+        return list(self.live.values())
+
+    def _flat(self, tensors: dict, runs: torch.Tensor | None, detach: bool) -> dict:
+        out = {}
+        for name, value in tensors.items():
+            value = _select(value, runs)
+            out[name] = (value.detach() if detach else value).reshape(-1, *value.shape[2:])
+        return out
+
+    def logits(self, observation: torch.Tensor, action: torch.Tensor, runs: torch.Tensor | None = None, *,
+               target: bool = False, detach: bool = False) -> torch.Tensor:
+        """Each run's members' logits ``[S', N, K]`` on its own ``observation`` ``[S', N, d]`` and ``action``."""
+        if target and self.target is None:
+            raise ValueError("these ensembles have no target copy.")
+        params = self._flat(self.target if target else self.live, runs, detach)
+        params.update(self._flat(self.priors, runs, True))
+        count, n = observation.shape[0], observation.shape[1]
+        k = self.members
+
+        def per_member(x: torch.Tensor) -> torch.Tensor:  # [S', N, *] -> [S'K, N, *]
+            return x.unsqueeze(1).expand(count, k, *x.shape[1:]).reshape(count * k, n, x.shape[-1])
+
+        logit = EnsembleValueOperator.members_logits(self.template, per_member(observation),
+                                                     per_member(action.to(observation.dtype)), params)
+        return logit.reshape(count, k, n).transpose(1, 2)
+
+
+def _trained(group: dict, id_to_slot: dict) -> list[torch.Tensor]:
+    """A per-run optimizer group's trained parameters (torchrl hands fixed buffers, such as the tanh's
+    bounds, to the optimizer too; they never get a gradient)."""
+    out = []
+    for p in group["params"]:
+        if id(p) in id_to_slot:
+            out.append(p)
+        elif p.requires_grad:
+            raise ValueError(f"a trained parameter of shape {tuple(p.shape)} is in no batched network.")
+    return out
+
+
+def _adam_from(optimizers: Sequence[torch.optim.Optimizer], id_to_slot: dict, runs: int) -> RunMaskedAdam:
+    """A :class:`RunMaskedAdam` with the per-run optimizers' groups (lr, betas, eps) and their state."""
+    groups = []
+    for group in optimizers[0].param_groups:
+        stacked = {id(id_to_slot[id(p)][0]): id_to_slot[id(p)][0] for p in _trained(group, id_to_slot)}
+        groups.append({"params": list(stacked.values()), "lr": group["lr"], "betas": group["betas"], "eps": group["eps"]})
+    adam = RunMaskedAdam(groups, runs=runs)
+    load_run_optimizers(adam, optimizers, id_to_slot)
+    return adam
+
+
+def load_run_optimizers(adam: RunMaskedAdam, optimizers: Sequence[torch.optim.Optimizer], id_to_slot: dict) -> None:
+    """Copies each run's torch Adam state (moments, step count) into its slice of ``adam``."""
+    counts = {}
+    for s, opt in enumerate(optimizers):
+        for group in opt.param_groups:
+            for p in _trained(group, id_to_slot):
+                stacked, slot = id_to_slot[id(p)]
+                state = opt.state.get(p)
+                if not state:
+                    continue
+                adam.state[stacked]["exp_avg"][slot].copy_(state["exp_avg"])
+                adam.state[stacked]["exp_avg_sq"][slot].copy_(state["exp_avg_sq"])
+                counts.setdefault(s, set()).add(int(float(state["step"])))
+    for s, steps in counts.items():
+        if len(steps) != 1:
+            raise ValueError(f"run {s}'s optimizer holds parameters at different step counts {sorted(steps)}.")
+        adam.steps[s] = steps.pop()
+
+
+def export_run_optimizer(adam: RunMaskedAdam, optimizer: torch.optim.Optimizer, id_to_slot: dict, run: int) -> None:
+    """Writes run ``run``'s slice of ``adam`` into its own torch Adam, as that optimizer would hold it alone."""
+    steps = int(adam.steps[run])
+    for group in optimizer.param_groups:
+        for p in _trained(group, id_to_slot):
+            stacked, slot = id_to_slot[id(p)]
+            if steps == 0:
+                optimizer.state.pop(p, None)
+                continue
+            old = optimizer.state.get(p, {})
+            step = old.get("step")
+            like = step if isinstance(step, torch.Tensor) else torch.tensor(0.0)
+            optimizer.state[p] = {"step": torch.full_like(like, float(steps)),
+                                  "exp_avg": adam.state[stacked]["exp_avg"][slot].clone(),
+                                  "exp_avg_sq": adam.state[stacked]["exp_avg_sq"][slot].clone()}
+
+
+def _mask(runs: torch.Tensor, count: int) -> torch.Tensor:
+    mask = torch.zeros(count, dtype=torch.bool)
+    mask[runs] = True
+    return mask
+
+
+def _key(key) -> tuple:
+    return (key,) if isinstance(key, str) else tuple(key)
+
+
+def _stack(samples: Sequence[TensorDictBase], key) -> torch.Tensor:
+    return torch.stack([s.get(key) for s in samples])
+
+
+class _RunUpdate:
+    """What both updates share: the policies, the ensembles, one masked Adam, the masked target updates."""
+
+    loss_names: tuple[str, str]
+
+    def __init__(self, policies: RunPolicies, ensembles: RunEnsembles, optimizers: Sequence[torch.optim.Optimizer],
+                 tau: float) -> None:
+        self.policies, self.ensembles, self.runs = policies, ensembles, policies.runs
+        self.optimizers = list(optimizers)
+        self.id_to_slot = {**policies.id_to_slot, **ensembles.id_to_slot}
+        self.optimizer = _adam_from(self.optimizers, self.id_to_slot, self.runs)
+        sources, targets = [], []
+        if policies.target_weights is not None:
+            sources += [*policies.weights, *policies.biases]
+            targets += [*policies.target_weights, *policies.target_biases]
+        if ensembles.target is not None:
+            sources += [ensembles.live[n] for n in ensembles.trained_names]
+            targets += [ensembles.target[n] for n in ensembles.trained_names]
+        self.targets = RunMaskedSoftUpdate(sources, targets, self.runs, tau)
+
+    def losses(self, samples: Sequence[TensorDictBase], runs: torch.Tensor) -> dict[str, torch.Tensor]:
+        raise NotImplementedError
+
+    def update(self, samples: Sequence[TensorDictBase], runs: Sequence[int]) -> dict[str, torch.Tensor]:
+        """One gradient step and one target update for the runs ``runs`` (sample ``samples[j]`` is run
+        ``runs[j]``'s); returns each loss per run, ``[len(runs)]``. Raises ``FloatingPointError``
+        naming the runs whose loss is not finite, before any parameter changed."""
+        index = torch.as_tensor(list(runs), dtype=torch.long)
+        if index.numel() == 0:
+            return {}
+        everyone = index.numel() == self.runs and bool((index == torch.arange(self.runs)).all())
+        losses = self.losses(samples, None if everyone else index)
+        total = sum(losses[n] for n in self.loss_names)
+        finite = torch.isfinite(total.detach())
+        if not bool(finite.all()):
+            bad = index[~finite].tolist()
+            raise FloatingPointError(f"runs {bad}: " + ", ".join(
+                f"{n}={losses[n].detach()[~finite].tolist()}" for n in self.loss_names))
+        self.optimizer.zero_grad()
+        total.sum().backward()  # the runs' parameters are disjoint: each gets its own loss's gradient
+        mask = _mask(index, self.runs)
+        self.optimizer.step(mask)
+        self.targets.step(mask)
+        return {n: v.detach() for n, v in losses.items()}
+
+    def export(self, run: int) -> None:
+        """Run ``run``'s optimizer state into its own optimizer (before its checkpoint)."""
+        export_run_optimizer(self.optimizer, self.optimizers[run], self.id_to_slot, run)
+
+    def reload(self) -> None:
+        """The per-run optimizers' state into the batched one (after the runs loaded their checkpoints)."""
+        load_run_optimizers(self.optimizer, self.optimizers, self.id_to_slot)
+
+
+class RunDDPGUpdate(_RunUpdate):
+    """DDPG for S runs: the forward agent (K = 1) or LNT's reset agent (a K-member Q ensemble).
+
+    Per run, as :class:`~torchrl.objectives.DDPGLoss` with the TD(0) estimator computes it:
+    ``loss_value = mean (Q_i(s, a) - r - gamma (1 - terminated) Q'_i(s', pi'(s')))^2`` over the
+    batch and the members, ``loss_actor = -mean Q_i(s, pi(s))`` with the critic held fixed.
+
+    Args:
+        losses: the runs' DDPG loss modules (their networks and target copies are bound).
+        optimizers: the runs' Adam optimizers (groups: actor, then critic).
+        gamma, tau: the discount and the target update rate.
+        reward_key: the reward entry under ``"next"`` (``"lnt_reward"`` for LNT's reset agent).
+    """
+
+    loss_names = ("loss_actor", "loss_value")
+
+    def __init__(self, losses: Sequence, optimizers: Sequence[torch.optim.Optimizer], *, gamma: float, tau: float,
+                 reward_key="reward") -> None:
+        policies = RunPolicies([loss.actor_network for loss in losses], [loss.target_actor_network_params for loss in losses])
+        ensembles = RunEnsembles([loss.value_network for loss in losses], [loss.target_value_network_params for loss in losses])
+        self.gamma, self.reward_key = float(gamma), reward_key
+        self.obs_key = policies.in_key
+        super().__init__(policies, ensembles, optimizers, tau)
+
+    def losses(self, samples: Sequence[TensorDictBase], runs: torch.Tensor | None) -> dict[str, torch.Tensor]:
+        obs = _stack(samples, self.obs_key)
+        action = _stack(samples, "action")
+        next_obs = _stack(samples, ("next", self.obs_key))
+        reward = _stack(samples, ("next", self.reward_key))
+        terminated = _stack(samples, ("next", "terminated"))
+        q = self.ensembles.logits(obs, action, runs)  # [S', B, K]
+        with torch.no_grad():
+            next_q = self.ensembles.logits(next_obs, self.policies(next_obs, runs, target=True), runs, target=True)
+            target = reward + self.gamma * (~terminated).int() * next_q
+        loss_value = (q - target).pow(2).flatten(1).mean(1)
+        actor_q = self.ensembles.logits(obs, self.policies(obs, runs), runs, detach=True)
+        loss_actor = -actor_q.flatten(1).mean(1)
+        return {"loss_actor": loss_actor, "loss_value": loss_value}
+
+
+class RunRCEUpdate(_RunUpdate):
+    """RCE for S runs' reset agents (ours): :class:`~torchrl_reset.RCELoss`'s Eq. 2-3 per run.
+
+    Args:
+        losses: the runs' RCE loss modules (their actors, classifier ensembles and target classifiers).
+        optimizers: the runs' Adam optimizers (groups: actor, then classifier).
+        tau: the target update rate.
+    """
+
+    loss_names = ("loss_actor", "loss_classifier")
+
+    def __init__(self, losses: Sequence, optimizers: Sequence[torch.optim.Optimizer], *, tau: float) -> None:
+        first = losses[0]
+        policies = RunPolicies([loss.actor_network for loss in losses])
+        ensembles = RunEnsembles([loss.classifier_network for loss in losses],
+                                 [loss.target_classifier_network_params for loss in losses])
+        self.gamma, self.n_steps, self.clip = float(first.gamma), int(first.n_steps), bool(first.clip_target_values)
+        keys = first.tensor_keys
+        self.obs_key, self.nstep_key, self.example_key = policies.in_key, keys.nstep_state, keys.example_state
+        self.one_step_key = keys.one_step
+        if [_key(k) for k in ensembles.template.in_keys[:-1]] != [_key(self.obs_key)]:
+            raise ValueError(f"RunRCEUpdate needs the classifier to read the policy's observation {self.obs_key!r} "
+                             f"only; it reads {ensembles.template.in_keys[:-1]}.")
+        super().__init__(policies, ensembles, optimizers, tau)
+
+    def labels(self, samples: Sequence[TensorDictBase], runs: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor]:
+        """Each run's shared label ``y`` and weight ``1 + gamma w_y``, ``[S', B]``, without gradient."""
+        gamma, batch = self.gamma, samples[0].shape[0]
+        nstep = self.n_steps > 1
+        states = [_stack(samples, ("next", self.obs_key))]
+        if nstep:
+            states.append(_stack(samples, (*_key(self.nstep_key), self.obs_key)))
+        with torch.no_grad():
+            targets = torch.cat(states, 1)
+            value = torch.sigmoid(self.ensembles.logits(targets, self.policies(targets, runs), runs, target=True))
+            if self.clip:
+                value = value.clamp(0.0, 0.5)
+            label = rce_label(value[:, :batch], gamma)
+            if nstep:
+                both = 0.5 * (label + rce_label(value[:, batch:], gamma**self.n_steps))
+                one_step = torch.tensor([bool(s.get(self.one_step_key, torch.zeros(1, dtype=torch.bool)).all())
+                                         for s in samples]).reshape(-1, 1, 1)
+                label = torch.where(one_step, label, both)  # a run whose batch fell back to one-step labels
+            label = label.amin(-1).clamp(max=0.5)
+            return label, label_weight(label, gamma)
+
+    def losses(self, samples: Sequence[TensorDictBase], runs: torch.Tensor | None) -> dict[str, torch.Tensor]:
+        gamma = self.gamma
+        label, weight = self.labels(samples, runs)
+        obs = _stack(samples, self.obs_key)
+        action = _stack(samples, "action")
+        examples = _stack(samples, (*_key(self.example_key), self.obs_key))
+        with torch.no_grad():
+            example_action = self.policies(examples, runs)
+        example_logits = self.ensembles.logits(examples, example_action, runs)  # [S', B, K]
+        replay_logits = self.ensembles.logits(obs, action.to(example_action.dtype), runs)
+        loss_examples = (1.0 - gamma) * F.binary_cross_entropy_with_logits(
+            example_logits, torch.full_like(example_logits, 0.5), reduction="none").mean(1)
+        loss_replay = F.binary_cross_entropy_with_logits(
+            replay_logits, label.unsqueeze(-1).expand_as(replay_logits), weight=weight.unsqueeze(-1),
+            reduction="none").mean(1)
+        loss_classifier = (loss_examples + loss_replay).sum(-1)
+        actor_logits = self.ensembles.logits(obs, self.policies(obs, runs), runs, detach=True)
+        loss_actor = -torch.sigmoid(actor_logits).amin(-1).mean(-1)
+        return {"loss_actor": loss_actor, "loss_classifier": loss_classifier}
