@@ -16,6 +16,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import random
+import time
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -102,6 +103,39 @@ class RunRNG:
             self.capture()
 
 
+class BatchTiming:
+    """Where a batch's wall time goes once every run's agents both update (after their heat-up and
+    ``WARM_UP_UPDATES`` more steps of each phase, as a run's own ``step_seconds``): the aggregate rate
+    and the cost per run-step outside the updates (env steps, policies, triggers, buffers, records)."""
+
+    def __init__(self, runs: list, heat_up: int) -> None:
+        from records import WARM_UP_UPDATES
+
+        self.runs, self.after = runs, heat_up + WARM_UP_UPDATES
+        self.iterations = self.run_steps = 0
+        self.seconds = self.update_seconds = 0.0
+
+    def steady(self) -> bool:
+        return all(min(r.collector.counters["forward_steps"], r.collector.counters["reset_steps"]) > self.after
+                   for r in self.runs)
+
+    def add(self, seconds: float, update_seconds: float, run_steps: int) -> None:
+        self.iterations += 1
+        self.run_steps += run_steps
+        self.seconds += seconds
+        self.update_seconds += update_seconds
+
+    def row(self) -> dict:
+        measured = self.run_steps > 0
+        return {
+            "runs": len(self.runs), "seeds": [int(r.cfg.seed) for r in self.runs],
+            "steady_iterations": self.iterations,
+            "run_steps_per_second": self.run_steps / self.seconds if measured else None,
+            "update_ms_per_iteration": 1e3 * self.update_seconds / self.iterations if measured else None,
+            "outside_updates_ms_per_run_step": 1e3 * (self.seconds - self.update_seconds) / self.run_steps if measured else None,
+        }
+
+
 class BatchedUpdates:
     """The S runs' forward agents and reset agents, each kind updated by one call per step."""
 
@@ -118,6 +152,7 @@ class BatchedUpdates:
             self.reset = RunDDPGUpdate([r.reset.loss for r in runs], [r.reset.optimizer for r in runs],
                                        gamma=float(cfg.gamma), tau=reset_tau, reward_key="lnt_reward")
         self.precision = runs[0].matmul_precision
+        self.seconds = 0.0  # spent in update calls (read by the loop's timing)
         for s, run in enumerate(runs):  # a checkpoint holds the run's own optimizer state, as a run alone's
             run.state.before_save = (lambda s=s: self.export(s))
 
@@ -131,11 +166,13 @@ class BatchedUpdates:
             return
         update = self.forward if phase == "forward" else self.reset
         runs = sorted(requests)
+        started = time.perf_counter()
         with matmul_products(self.precision):
             try:
                 losses = update.update([requests[s] for s in runs], runs)
             except FloatingPointError as err:
                 raise NonFiniteLoss(f"{phase} agent, {err}") from err
+        self.seconds += time.perf_counter() - started
         for j, s in enumerate(runs):
             learner = self.runs[s].learner
             learner.record_losses(phase, {n: float(v[j]) for n, v in losses.items()})
@@ -164,12 +201,14 @@ def _train_batch(configs: list[DictConfig]) -> list[dict]:
         runs.append(train.build_run(run_cfg, precision))
         streams.append(RunRNG())
     updates = BatchedUpdates(runs)
+    timing = BatchTiming(runs, int(configs[0].heat_up))
     steps = [iter(run.collector) for run in runs]
     done = [False] * len(runs)
     interrupted = False
     try:
         with stop_on_sigterm() as stop_requested:
             while not all(done):
+                steady, started, in_updates = timing.steady(), time.perf_counter(), updates.seconds
                 stepped, requests = [], {"forward": {}, "reset": {}}
                 for s, run in enumerate(runs):  # lines 5-15 / 17-22 of each run: its own env step
                     if done[s]:
@@ -190,6 +229,8 @@ def _train_batch(configs: list[DictConfig]) -> list[dict]:
                 for s, batch, phase in stepped:
                     with streams[s].active():
                         runs[s].after_step(batch, phase)
+                if steady and stepped:
+                    timing.add(time.perf_counter() - started, updates.seconds - in_updates, len(stepped))
                 if stop_requested:
                     interrupted = True
                     log.warning("SIGTERM at step %d: checkpointing the batch", max(r.collector.frames for r in runs))
@@ -207,5 +248,5 @@ def _train_batch(configs: list[DictConfig]) -> list[dict]:
     summaries = []
     for s, run in enumerate(runs):
         with streams[s].active():
-            summaries.append(run.finish(interrupted))
+            summaries.append(run.finish(interrupted, extra={"batch": timing.row()}))
     return summaries

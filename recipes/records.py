@@ -157,7 +157,7 @@ class RunRecord:
     def close(self) -> None:
         self.bar.close()
 
-    def summary(self, *, finished: bool, learner, env, robot, matmul_precision: str) -> dict:
+    def summary(self, *, finished: bool, learner, env, robot, matmul_precision: str, extra: dict | None = None) -> dict:
         """The paper's Table 1 metrics and what the run ran on, written to ``summary.json``."""
         cfg, collector, history = self.cfg, self.collector, self.history
         c, returns = collector.counters, history["eval_returns"]
@@ -189,7 +189,7 @@ class RunRecord:
             "steps_per_second": round(collector.frames / max(history["elapsed"], 1e-9), 1),
             "step_seconds": {name: (total / count if count else None) for name, (total, count) in self.step_time.items()},
             "device": str(cfg.device), "matmul_precision": matmul_precision, **self.code,
-            "torch": torch.__version__, "torchrl": torchrl.__version__,
+            "torch": torch.__version__, "torchrl": torchrl.__version__, **(extra or {}),
         }
         (self.run_dir / "summary.json").write_text(json.dumps(summary, indent=2, default=_json_default))
         for logger in self.loggers:

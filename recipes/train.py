@@ -123,12 +123,12 @@ class Run:
         self.record.mark_time()
         return self.state.save()
 
-    def finish(self, interrupted: bool) -> dict:
-        """The last checkpoint and the summary; closes the envs."""
+    def finish(self, interrupted: bool, extra: dict | None = None) -> dict:
+        """The last checkpoint and the summary (with ``extra`` entries); closes the envs."""
         self.checkpoint()
         finished = self.collector.frames >= int(self.cfg.total_steps) and not interrupted
         summary = self.record.summary(finished=finished, learner=self.learner, env=self.env, robot=self.robot,
-                                      matmul_precision=self.matmul_precision)
+                                      matmul_precision=self.matmul_precision, extra=extra)
         self.collector.shutdown()
         self.eval_env.close()
         return summary

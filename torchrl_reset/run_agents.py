@@ -26,6 +26,7 @@ from tensordict import TensorDict, TensorDictBase
 from torch import nn
 from torchrl.modules import TanhModule
 
+from .accel.ensemble import _members_linear
 from .ensemble import EnsembleValueOperator
 from .rce_loss import label_weight, rce_label
 from .runs import RunMaskedAdam, RunMaskedSoftUpdate
@@ -116,8 +117,33 @@ class RunPolicies:
 _TRAINED = ("weight_{}", "bias_{}")
 
 
+def _per_member(x: torch.Tensor, k: int) -> torch.Tensor:
+    """``[S', N, *]`` -> ``[S' * k, N, *]``: each run's rows for each of its k members."""
+    runs, n = x.shape[0], x.shape[1]
+    return x.unsqueeze(1).expand(runs, k, *x.shape[1:]).reshape(runs * k, n, x.shape[-1])
+
+
+def _trunk(x: torch.Tensor, weights: list[torch.Tensor], biases: list[torch.Tensor]) -> torch.Tensor:
+    """The state part of M members on their own rows ``[M, N, d]``: layer 0 and layer 1's state half."""
+    hidden = torch.baddbmm(biases[0].unsqueeze(-2), x, weights[0]).relu_()
+    return _members_linear(hidden, weights[1], biases[1])
+
+
+def _head(trunk: torch.Tensor, action: torch.Tensor, weights: list[torch.Tensor], biases: list[torch.Tensor],
+          action_weight: torch.Tensor, *, overwrite: bool = False) -> torch.Tensor:
+    """The rest of M members from their trunk ``[M, N, h1]`` and their actions ``[M, N, a]``: ``[M, N]``."""
+    hidden = trunk.baddbmm_(action, action_weight) if overwrite else torch.baddbmm(trunk, action, action_weight)
+    for i in range(2, len(weights)):
+        hidden = _members_linear(hidden.relu_(), weights[i], biases[i])
+    return hidden.squeeze(-1)
+
+
 class RunEnsembles:
     """S runs' :class:`~torchrl_reset.EnsembleValueOperator` ensembles of K members, as S*K members.
+
+    Member ``i`` of run ``s`` computes ``f_i(s, a) + beta * g_i(s, a)`` on run ``s``'s rows only, with
+    the accelerator's products (:mod:`torchrl_reset.accel.ensemble`: fused biases, the one-wide logit
+    layer as dot products, trained and prior members as one stack without gradients).
 
     Args:
         ensembles: one ensemble per run (same sizes and prior scale).
@@ -128,6 +154,7 @@ class RunEnsembles:
     def __init__(self, ensembles: Sequence[EnsembleValueOperator], targets: Sequence[TensorDictBase] | None = None) -> None:
         first = ensembles[0]
         self.template, self.runs, self.members = first, len(ensembles), first.num_members
+        self.prior_scale, self.num_layers = first.prior_scale, first.num_layers
         self.trained_names = [n.format(i) for i in range(first.num_layers) for n in _TRAINED] + ["action_weight"]
         self.prior_names = ["prior_" + n for n in self.trained_names] if first.has_prior else []
         self.live = {n: bind_runs([getattr(e, n) for e in ensembles], trainable=True) for n in self.trained_names}
@@ -141,29 +168,68 @@ class RunEnsembles:
     def parameters(self) -> list[nn.Parameter]:
         return list(self.live.values())
 
-    def _flat(self, tensors: dict, runs: torch.Tensor | None, detach: bool) -> dict:
-        out = {}
-        for name, value in tensors.items():
-            value = _select(value, runs)
-            out[name] = (value.detach() if detach else value).reshape(-1, *value.shape[2:])
-        return out
+    def _layers(self, tensors: dict, runs: torch.Tensor | None, *, prefix: str = "", detach: bool = False):
+        """Weights, biases and action weight of the selected runs, ``[S' K, ...]``."""
+        def get(name: str) -> torch.Tensor:
+            value = _select(tensors[prefix + name], runs)
+            return (value.detach() if detach else value).reshape(-1, *value.shape[2:])
+
+        return ([get(f"weight_{i}") for i in range(self.num_layers)], [get(f"bias_{i}") for i in range(self.num_layers)],
+                get("action_weight"))
 
     def logits(self, observation: torch.Tensor, action: torch.Tensor, runs: torch.Tensor | None = None, *,
                target: bool = False, detach: bool = False) -> torch.Tensor:
-        """Each run's members' logits ``[S', N, K]`` on its own ``observation`` ``[S', N, d]`` and ``action``."""
+        """Each run's members' logits ``[S', N, K]`` on its own ``observation`` ``[S', N, d]`` and ``action``.
+
+        ``target``: the target copy; ``detach``: the parameters held fixed (gradient reaches the action only)."""
         if target and self.target is None:
             raise ValueError("these ensembles have no target copy.")
-        params = self._flat(self.target if target else self.live, runs, detach)
-        params.update(self._flat(self.priors, runs, True))
-        count, n = observation.shape[0], observation.shape[1]
-        k = self.members
+        count, n, k = observation.shape[0], observation.shape[1], self.members
+        layers = self._layers(self.target if target else self.live, runs, detach=detach)
+        action = action.to(observation.dtype)
+        if not self.prior_names:
+            out = _head(_trunk(_per_member(observation, k), *layers[:2]), _per_member(action, k), *layers)
+            return out.reshape(count, k, n).transpose(1, 2)
+        priors = self._layers(self.priors, runs, prefix="prior_")
+        if torch.is_grad_enabled():
+            x, a = _per_member(observation, k), _per_member(action, k)
+            f = _head(_trunk(x, *layers[:2]), a, *layers)
+            g = _head(_trunk(x, *priors[:2]), a, *priors)  # frozen: gradient reaches the action only
+            return (f + self.prior_scale * g).reshape(count, k, n).transpose(1, 2)
+        # without gradients, each run's trained and prior members run as one stack of 2K
+        def both(trained: torch.Tensor, prior: torch.Tensor) -> torch.Tensor:
+            return torch.cat([trained.reshape(count, k, *trained.shape[1:]), prior.reshape(count, k, *prior.shape[1:])],
+                             1).reshape(count * 2 * k, *trained.shape[1:])
 
-        def per_member(x: torch.Tensor) -> torch.Tensor:  # [S', N, *] -> [S'K, N, *]
-            return x.unsqueeze(1).expand(count, k, *x.shape[1:]).reshape(count * k, n, x.shape[-1])
+        stacked = ([both(w, p) for w, p in zip(layers[0], priors[0])], [both(b, p) for b, p in zip(layers[1], priors[1])],
+                   both(layers[2], priors[2]))
+        out = _head(_trunk(_per_member(observation, 2 * k), *stacked[:2]), _per_member(action, 2 * k), *stacked,
+                    overwrite=True).reshape(count, 2 * k, n)
+        return (out[:, :k] + self.prior_scale * out[:, k:]).transpose(1, 2)
 
-        logit = EnsembleValueOperator.members_logits(self.template, per_member(observation),
-                                                     per_member(action.to(observation.dtype)), params)
-        return logit.reshape(count, k, n).transpose(1, 2)
+    def paired(self, observation: torch.Tensor, action: torch.Tensor, policy_action: torch.Tensor, start: int,
+               runs: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """Per run, the logits of ``(observation, action)`` (gradient to the trained parameters) and of
+        ``(observation[:, start:], policy_action)`` (the parameters held fixed: gradient to the action
+        only), sharing the members' state part: :meth:`~torchrl_reset.accel.FastEnsembleValueOperator.paired_logits`
+        for S runs. Returns ``[S', N, K]`` and ``[S', N - start, K]``."""
+        count, n, k = observation.shape[0], observation.shape[1], self.members
+        x = _per_member(observation, k)
+        act, policy_act = _per_member(action.to(observation.dtype), k), _per_member(policy_action.to(observation.dtype), k)
+        weights, biases, action_weight = self._layers(self.live, runs)
+        trunk = _trunk(x, weights, biases)
+        held = [w.detach() for w in weights], [b.detach() for b in biases], action_weight.detach()
+        policy = _head(trunk[:, start:].detach(), policy_act, *held)
+        out = _head(trunk, act, weights, biases, action_weight, overwrite=True)  # after the policy's head
+        if self.prior_names:
+            priors = self._layers(self.priors, runs, prefix="prior_")
+            with torch.no_grad():
+                prior_trunk = _trunk(x, *priors[:2])
+            policy = policy + self.prior_scale * _head(prior_trunk[:, start:], policy_act, *priors)
+            with torch.no_grad():
+                prior = _head(prior_trunk, act, *priors, overwrite=True)
+            out = out + self.prior_scale * prior
+        return out.reshape(count, k, n).transpose(1, 2), policy.reshape(count, k, n - start).transpose(1, 2)
 
 
 def _trained(group: dict, id_to_slot: dict) -> list[torch.Tensor]:
@@ -358,43 +424,53 @@ class RunRCEUpdate(_RunUpdate):
                              f"only; it reads {ensembles.template.in_keys[:-1]}.")
         super().__init__(policies, ensembles, optimizers, tau)
 
-    def labels(self, samples: Sequence[TensorDictBase], runs: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor]:
-        """Each run's shared label ``y`` and weight ``1 + gamma w_y``, ``[S', B]``, without gradient."""
-        gamma, batch = self.gamma, samples[0].shape[0]
-        nstep = self.n_steps > 1
+    def _targets(self, samples: Sequence[TensorDictBase]) -> torch.Tensor:
+        """``s_{t+1}`` (and ``s_{t+n}`` when n > 1) of each run, ``[S', B or 2B, d]``."""
         states = [_stack(samples, ("next", self.obs_key))]
-        if nstep:
+        if self.n_steps > 1:
             states.append(_stack(samples, (*_key(self.nstep_key), self.obs_key)))
+        return torch.cat(states, 1)
+
+    def _labels_from(self, samples, targets: torch.Tensor, actions: torch.Tensor, runs) -> tuple[torch.Tensor, torch.Tensor]:
+        gamma, batch = self.gamma, samples[0].shape[0]
+        value = torch.sigmoid(self.ensembles.logits(targets, actions, runs, target=True))
+        if self.clip:
+            value = value.clamp(0.0, 0.5)
+        label = rce_label(value[:, :batch], gamma)
+        if self.n_steps > 1:
+            both = 0.5 * (label + rce_label(value[:, batch:], gamma**self.n_steps))
+            one_step = torch.tensor([bool(s.get(self.one_step_key, torch.zeros(1, dtype=torch.bool)).all())
+                                     for s in samples], device=label.device).reshape(-1, 1, 1)
+            label = torch.where(one_step, label, both)  # a run whose batch fell back to one-step labels
+        label = label.amin(-1).clamp(max=0.5)
+        return label, label_weight(label, gamma)
+
+    def labels(self, samples: Sequence[TensorDictBase], runs: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """Each run's shared label ``y`` and weight ``1 + gamma w_y``, ``[S', B]``, without gradient."""
         with torch.no_grad():
-            targets = torch.cat(states, 1)
-            value = torch.sigmoid(self.ensembles.logits(targets, self.policies(targets, runs), runs, target=True))
-            if self.clip:
-                value = value.clamp(0.0, 0.5)
-            label = rce_label(value[:, :batch], gamma)
-            if nstep:
-                both = 0.5 * (label + rce_label(value[:, batch:], gamma**self.n_steps))
-                one_step = torch.tensor([bool(s.get(self.one_step_key, torch.zeros(1, dtype=torch.bool)).all())
-                                         for s in samples]).reshape(-1, 1, 1)
-                label = torch.where(one_step, label, both)  # a run whose batch fell back to one-step labels
-            label = label.amin(-1).clamp(max=0.5)
-            return label, label_weight(label, gamma)
+            targets = self._targets(samples)
+            return self._labels_from(samples, targets, self.policies(targets, runs), runs)
 
     def losses(self, samples: Sequence[TensorDictBase], runs: torch.Tensor | None) -> dict[str, torch.Tensor]:
-        gamma = self.gamma
-        label, weight = self.labels(samples, runs)
+        gamma, batch = self.gamma, samples[0].shape[0]
         obs = _stack(samples, self.obs_key)
         action = _stack(samples, "action")
         examples = _stack(samples, (*_key(self.example_key), self.obs_key))
-        with torch.no_grad():
-            example_action = self.policies(examples, runs)
-        example_logits = self.ensembles.logits(examples, example_action, runs)  # [S', B, K]
-        replay_logits = self.ensembles.logits(obs, action.to(example_action.dtype), runs)
+        with torch.no_grad():  # one policy pass for s_{t+1}, s_{t+n} and s*
+            targets = self._targets(samples)
+            acting = self.policies(torch.cat([targets, examples], 1), runs)
+            label, weight = self._labels_from(samples, targets, acting[:, :targets.shape[1]], runs)
+            example_action = acting[:, targets.shape[1]:]
+        # the examples' and replay rows' classifier pairs and the actor's pairs share the state part
+        logits, actor_logits = self.ensembles.paired(
+            torch.cat([examples, obs], 1), torch.cat([example_action, action.to(example_action.dtype)], 1),
+            self.policies(obs, runs), batch, runs)
+        example_logits, replay_logits = logits[:, :batch], logits[:, batch:]
         loss_examples = (1.0 - gamma) * F.binary_cross_entropy_with_logits(
             example_logits, torch.full_like(example_logits, 0.5), reduction="none").mean(1)
         loss_replay = F.binary_cross_entropy_with_logits(
             replay_logits, label.unsqueeze(-1).expand_as(replay_logits), weight=weight.unsqueeze(-1),
             reduction="none").mean(1)
         loss_classifier = (loss_examples + loss_replay).sum(-1)
-        actor_logits = self.ensembles.logits(obs, self.policies(obs, runs), runs, detach=True)
         loss_actor = -torch.sigmoid(actor_logits).amin(-1).mean(-1)
         return {"loss_actor": loss_actor, "loss_classifier": loss_classifier}

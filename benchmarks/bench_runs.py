@@ -1,0 +1,143 @@
+"""Many runs in one process against separate processes, on peg-insertion (insert) at the paper's settings.
+
+    python benchmarks/bench_runs.py                          # S = 1, 2, 5, 10; about 15 minutes on 2 cores
+    python benchmarks/bench_runs.py --runs 1 5 --steps 900   # a shorter look
+
+Side by side, in one invocation, each configuration its own process of ``recipes/train.py``
+(algorithm ``ours``, 400-300 networks, batch 64 / 256 + 256 examples, K = 5, n = 10; only the
+heat-up is shortened, ``--heat-up``, so that the updates start sooner: it changes no update's cost):
+
+- **batched**: ``seeds=S`` in one process with ``--threads`` torch threads (2: the whole machine),
+  for each S. Its ``summary.json`` times the iterations once every run's agents both update: the
+  aggregate run-steps per second, and the time per run-step outside the update calls (env steps,
+  policies, triggers, buffers, records).
+- **separate**: single runs, one torch thread each, two processes at a time on the two cores, as a
+  grid of S runs would go: their aggregate rate is the sum of the two processes' rates, measured
+  over the same steady steps (each run's ``step_seconds`` at its own forward share). S runs take
+  ``S / aggregate`` either way, so the ratio of aggregate rates is the speed-up of batching S runs.
+
+Writes ``benchmarks/results/runs-<date>.json`` and ``.md``.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "benchmarks"))
+
+from bench_updates import describe, machine, write_results  # noqa: E402
+
+TASK, ALGO = "peg_insertion_insert", "ours"
+TARGET_RATIO_S5 = 1.7  # S = 5 batched against separate processes, two CPU cores
+TARGET_OUTSIDE_MS_S5 = 1.0  # per run-step outside the updates at S = 5
+
+
+def command(out: Path, steps: int, heat_up: int, threads: int, *, seeds=None, seed: int = 0,
+            overrides: tuple[str, ...] = ()) -> list[str]:
+    args = [sys.executable, str(ROOT / "recipes" / "train.py"), f"task={TASK}", f"algo={ALGO}", f"total_steps={steps}",
+            f"heat_up={heat_up}", f"threads={threads}", f"sweep_dir={out}", "progress_bar=false",
+            f"eval_every={10 * steps}", f"checkpoint_every={10 * steps}", f"log_every={steps}", *overrides]
+    return args + ([f"seeds={seeds}"] if seeds is not None else [f"seed={seed}"])
+
+
+def summaries(out: Path, seeds) -> list[dict]:
+    return [json.loads((out / TASK / ALGO / f"seed{s}" / "summary.json").read_text()) for s in seeds]
+
+
+def run(args: list[str]) -> subprocess.Popen:
+    return subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                            env={**os.environ, "RL_WARNINGS": "0"}, cwd=ROOT)
+
+
+def wait(proc: subprocess.Popen, what: str) -> None:
+    _, err = proc.communicate()
+    if proc.returncode:
+        raise SystemExit(f"{what} failed (exit {proc.returncode}):\n{err.decode()[-3000:]}")
+
+
+def steady_rate(summary: dict) -> float:
+    """A run's steps per second once both its agents update: its phases' mean step times at its forward share."""
+    share, times = summary["forward_share"], summary["step_seconds"]
+    if times["forward"] is None or times["reset"] is None:
+        raise SystemExit("a separate run never reached steady state; give it more --steps.")
+    return 1.0 / (share * times["forward"] + (1.0 - share) * times["reset"])
+
+
+def main(argv=None) -> dict:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--runs", type=int, nargs="+", default=[1, 2, 5, 10], help="the batch sizes S")
+    parser.add_argument("--steps", type=int, default=1400, help="environment steps per run (default 1400)")
+    parser.add_argument("--heat-up", type=int, default=200, help="steps of each phase before its agent updates")
+    parser.add_argument("--threads", type=int, default=2, help="torch threads of a batched process (default 2)")
+    parser.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results")
+    parser.add_argument("--override", action="append", default=[],
+                        help="an extra recipe setting for every run (key=value; repeatable), stated in the results")
+    args = parser.parse_args(argv)
+    if any(s < 1 for s in args.runs) or args.steps <= 3 * args.heat_up:
+        raise SystemExit("--runs must be positive and --steps well past 3 x --heat-up (the steady part is measured).")
+    info, extra = machine(), tuple(args.override)
+    rows, report = [], {"machine": info, "task": TASK, "algo": ALGO, "steps": args.steps, "heat_up": args.heat_up,
+                        "threads": args.threads, "overrides": list(extra), "batched": {}}
+    with tempfile.TemporaryDirectory() as tmp:
+        tmp = Path(tmp)
+        # separate processes: two single runs at a time, one thread each
+        started = time.perf_counter()
+        procs = [run(command(tmp / "separate", args.steps, args.heat_up, 1, seed=s, overrides=extra)) for s in (0, 1)]
+        for p in procs:
+            wait(p, "a separate run")
+        alone = summaries(tmp / "separate", (0, 1))
+        separate = sum(steady_rate(s) for s in alone)
+        report["separate"] = {"aggregate_steps_per_second": separate, "wall_seconds": time.perf_counter() - started,
+                              "runs": [{k: s[k] for k in ("seed", "forward_share", "step_seconds", "steps_per_second")}
+                                       for s in alone]}
+        for count in args.runs:
+            out = tmp / f"batched{count}"
+            started = time.perf_counter()
+            wait(run(command(out, args.steps, args.heat_up, args.threads, seeds=count, overrides=extra)),
+                 f"the batch of {count}")
+            batch = summaries(out, range(count))
+            timing = batch[0]["batch"]
+            if not timing["steady_iterations"]:
+                raise SystemExit(f"the batch of {count} never reached steady state; give it more --steps.")
+            report["batched"][count] = {**timing, "wall_seconds": time.perf_counter() - started,
+                                        "forward_share": sum(s["forward_share"] for s in batch) / count}
+            rows.append((count, timing))
+    lines = [f"# Many runs in one process ({info['date']})", "",
+             describe(info, args.threads) + " Batched: one process, "
+             f"{args.threads} torch threads; separate: single runs, 1 thread each, two processes at a time.",
+             f"peg-insertion (insert), ours at the paper's settings, {args.steps} steps per run, heat-up "
+             f"{args.heat_up}; rates over the steps once every run's agents both update."
+             + (f" Changed from the paper's settings: {', '.join(extra)}." if extra else ""), "",
+             "| runs S | aggregate run-steps/s | vs separate processes | outside the updates, ms per run-step "
+             "| updates, ms per iteration | mean forward share |", "|---|---|---|---|---|---|",
+             f"| separate (2 processes) | {separate:.1f} | 1.00x | | | "
+             f"{sum(s['forward_share'] for s in alone) / 2:.2f} |"]
+    for count, t in rows:
+        ratio = t["run_steps_per_second"] / separate
+        report["batched"][count]["ratio_vs_separate"] = ratio
+        lines.append(f"| {count} | {t['run_steps_per_second']:.1f} | {ratio:.2f}x | {t['outside_updates_ms_per_run_step']:.2f} "
+                     f"| {t['update_ms_per_iteration']:.1f} | {report['batched'][count]['forward_share']:.2f} |")
+    checks = []
+    if 5 in report["batched"]:
+        b5 = report["batched"][5]
+        checks += [(f"S = 5 batched >= {TARGET_RATIO_S5}x separate processes", f"{b5['ratio_vs_separate']:.2f}x",
+                    b5["ratio_vs_separate"] >= TARGET_RATIO_S5),
+                   (f"S = 5: <= {TARGET_OUTSIDE_MS_S5} ms per run-step outside the updates",
+                    f"{b5['outside_updates_ms_per_run_step']:.2f}", b5["outside_updates_ms_per_run_step"] <= TARGET_OUTSIDE_MS_S5)]
+    if checks:
+        lines += ["", "| target | measured | met |", "|---|---|---|"]
+        lines += [f"| {name} | {value} | {'yes' if ok else 'NO'} |" for name, value, ok in checks]
+    report["targets"] = [{"target": n, "measured": v, "met": ok} for n, v, ok in checks]
+    write_results(args.out, "runs", report, "\n".join(lines) + "\n")
+    return report
+
+
+if __name__ == "__main__":
+    main()
