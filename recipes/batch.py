@@ -31,7 +31,7 @@ from torchrl_reset import DualCollector
 from torchrl_reset.accel import matmul_products
 from torchrl_reset.run_agents import RunDDPGUpdate, RunRCEUpdate
 
-__all__ = ["batch_seeds", "run_configs", "RunRNG", "BatchedUpdates", "train_batch"]
+__all__ = ["batch_seeds", "batch_runs", "run_configs", "RunRNG", "BatchedUpdates", "train_batch"]
 
 log = logging.getLogger("torchrl_reset.train")
 
@@ -54,13 +54,45 @@ def batch_seeds(cfg: DictConfig) -> list[int] | None:
     raise ConfigError(f"seeds must be a count or a non-empty list of integer seeds, got {seeds!r}")
 
 
-def run_configs(cfg: DictConfig, seeds: list[int], *, check: bool = True) -> list[DictConfig]:
-    """One configuration per seed, each validated as a run alone (unless ``check=False``), with its own ``run_dir``."""
+# what the batched updates share: runs of one batch must agree on these (any other setting may differ)
+BATCHED_SETTINGS = ("task.name", "algo.name", "hidden_sizes", "gamma", "tau", "reset.tau", "forward.actor_lr",
+                    "forward.critic_lr", "reset.actor_lr", "reset.critic_lr", "forward.batch_size", "reset.batch_size",
+                    "algo.num_members", "algo.prior_scale", "algo.n_steps", "algo.clip_target_values", "device",
+                    "threads", "speed")
+
+
+def batch_runs(cfg: DictConfig) -> list[tuple[int, object]] | None:
+    """The runs of a batch as ``(seed, value)`` pairs, or None for one run.
+
+    ``seeds`` (a count or a list) and ``vary`` with ``vary_values`` (a setting and its values, such as
+    ``vary=task.p_thresh vary_values=[0.1,0.3]`` for Fig. 4): every value with every seed."""
+    seeds = batch_seeds(cfg)
+    key, values = OmegaConf.select(cfg, "vary", default=None), OmegaConf.select(cfg, "vary_values", default=None)
+    if key is None:
+        if values:
+            raise ConfigError("vary_values needs vary=<the setting they are values of>")
+        return None if seeds is None else [(seed, None) for seed in seeds]
+    if OmegaConf.select(cfg, str(key), default="__missing__") == "__missing__":
+        raise ConfigError(f"vary={key}: no such setting")
+    if key in BATCHED_SETTINGS or str(key).split(".")[0] in ("speed", "seed", "seeds", "run_dir", "sweep_dir"):
+        raise ConfigError(f"vary={key}: the runs of a batch share it; run separate batches (or a -m grid) over it")
+    if not OmegaConf.is_list(values) or not values or len(set(map(str, values))) != len(values):
+        raise ConfigError(f"vary_values must be a non-empty list of distinct values, got {values!r}")
+    return [(seed, value) for value in values for seed in (seeds or [int(cfg.seed)])]
+
+
+def run_configs(cfg: DictConfig, runs: list, *, check: bool = True) -> list[DictConfig]:
+    """One configuration per run (``(seed, value)`` pairs, or seeds), each validated as a run alone (unless
+    ``check=False``), with its own ``run_dir``."""
+    key = OmegaConf.select(cfg, "vary", default=None)
     configs = []
-    for seed in seeds:
+    for run in runs:
+        seed, value = run if isinstance(run, tuple) else (run, None)
         run_cfg = OmegaConf.create(OmegaConf.to_container(cfg, resolve=False))
         run_cfg.seed = seed
-        run_cfg.seeds = None
+        run_cfg.seeds, run_cfg.vary, run_cfg.vary_values = None, None, None
+        if value is not None:
+            OmegaConf.update(run_cfg, str(key), value, merge=False)
         run_cfg.progress_bar = bool(cfg.progress_bar) and not configs  # one bar: the batch moves as one
         OmegaConf.resolve(run_cfg)
         configs.append(run_cfg)
@@ -68,15 +100,20 @@ def run_configs(cfg: DictConfig, seeds: list[int], *, check: bool = True) -> lis
         return configs
     folders = [str(Path(c.run_dir).resolve()) for c in configs]
     if len(set(folders)) != len(folders):
-        raise ConfigError("the runs of a batch need one run_dir each; run_dir must contain ${seed} "
+        varied = f" and ${{{key}}}" if key else ""
+        raise ConfigError(f"the runs of a batch need one run_dir each; run_dir must contain ${{seed}}{varied} "
                           f"(it is {cfg._get_node('run_dir')._value()!r}).")
     problems = []
     if OmegaConf.select(cfg, "speed.compile", default=[]):
         problems.append("speed.compile is not available for a batch (its updates are batched functions)")
     if (cfg.get("env") or {}).get("backend", "sim") != "sim":
         problems.append("a batch runs simulated tasks only (one robot is one run)")
+    for setting in BATCHED_SETTINGS:
+        seen = {str(OmegaConf.select(c, setting, default=None)) for c in configs}
+        if len(seen) > 1:
+            problems.append(f"{setting} differs between the runs ({', '.join(sorted(seen))}): the batched updates share it")
     if problems:
-        raise ConfigError("invalid configuration for seeds=...:\n  - " + "\n  - ".join(problems))
+        raise ConfigError("invalid configuration for a batch of runs:\n  - " + "\n  - ".join(problems))
     for run_cfg in configs:
         validate(run_cfg)
     return configs
@@ -178,9 +215,9 @@ class BatchedUpdates:
             learner.record_losses(phase, {n: float(v[j]) for n, v in losses.items()})
 
 
-def train_batch(cfg: DictConfig, seeds: list[int]) -> list[dict]:
-    """Trains (or resumes) the runs of ``seeds`` together; returns their summaries."""
-    configs = run_configs(cfg, seeds)
+def train_batch(cfg: DictConfig, runs: list) -> list[dict]:
+    """Trains (or resumes) the runs (seeds, or :func:`batch_runs`'s pairs) together; returns their summaries."""
+    configs = run_configs(cfg, runs)
     with contextlib.ExitStack() as locks:
         for run_cfg in configs:
             Path(run_cfg.run_dir).mkdir(parents=True, exist_ok=True)

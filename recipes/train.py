@@ -5,6 +5,8 @@
     python recipes/train.py task=cliff_cheetah algo=lnt preset=quick resume=true  # continue a killed run
     python recipes/train.py -m task=peg_insertion_insert algo=ours,lnt,lnt_sparse seed=0,1,2  # a grid, in parallel
     python recipes/train.py task=peg_insertion_insert algo=ours seeds=5  # seeds 0-4 in one process, updates batched
+    python recipes/train.py task=cliff_cheetah algo=ours seeds=3 vary=task.p_thresh vary_values=[0.1,0.3] \
+        run_dir='runs/${task.name}/${algo.name}/p${task.p_thresh}/seed${seed}'  # Fig. 4: 6 runs in one process
 
 Tasks: cliff_cheetah, cliff_walker, peg_insertion_insert, peg_insertion_remove, ball_in_cup_catch,
 ball_in_cup_throw. Everything lands in ``run_dir`` (default ``runs/<task>/<algo>/seed<seed>``):
@@ -32,7 +34,7 @@ from omegaconf import DictConfig, OmegaConf
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from agents import make_forward_agent, make_reset_agent  # noqa: E402
-from batch import batch_seeds, run_configs, train_batch  # noqa: E402
+from batch import batch_runs, run_configs, train_batch  # noqa: E402
 from buffers import make_buffers  # noqa: E402
 from config_checks import ConfigError, reset_horizon, should_resume, torch_threads, validate  # noqa: E402
 from learner import Learner, NonFiniteLoss, make_collector  # noqa: E402
@@ -203,12 +205,12 @@ def _train(cfg: DictConfig) -> dict:
 @hydra.main(version_base="1.3", config_path="conf", config_name="config")
 def main(cfg: DictConfig) -> None:
     try:
-        seeds = batch_seeds(cfg)
-        summaries = [train(cfg)] if seeds is None else train_batch(cfg, seeds)
+        runs = batch_runs(cfg)
+        summaries = [train(cfg)] if runs is None else train_batch(cfg, runs)
     except (ConfigError, RunFolderBusy, TrainingDiverged, RobotStopped) as err:
         print(f"error: {err}", file=sys.stderr)
         sys.exit({ConfigError: 2, RunFolderBusy: 2, TrainingDiverged: 3}.get(type(err), 4))
-    if seeds is None:
+    if runs is None:
         summary = summaries[0]
         width = max(map(len, summary))
         for key, value in summary.items():
@@ -216,8 +218,10 @@ def main(cfg: DictConfig) -> None:
         print(_in_words(summary))
         print(f"results in {cfg.run_dir}")
         return
-    for summary, run_cfg in zip(summaries, run_configs(cfg, seeds, check=False)):
-        print(f"seed {summary['seed']}: {_in_words(summary)} Results in {run_cfg.run_dir}")
+    key = cfg.get("vary")
+    for summary, run_cfg, (seed, value) in zip(summaries, run_configs(cfg, runs, check=False), runs):
+        setting = f", {key}={value}" if key else ""
+        print(f"seed {seed}{setting}: {_in_words(summary)} Results in {run_cfg.run_dir}")
 
 
 def _in_words(summary: dict) -> str:

@@ -138,3 +138,27 @@ def test_bad_batches_fail_before_training(tmp_path, overrides, message):
         seeds = batch.batch_seeds(cfg)
         batch.run_configs(cfg, seeds)
     assert not any(tmp_path.rglob("*.csv"))
+
+
+@pytest.mark.parametrize("overrides,message", [
+    (["vary_values=[0.1,0.2]"], "needs vary"),
+    (["vary=task.p_thresh", "vary_values=[0.1,0.2]"], "one run_dir each"),
+    (["vary=reset.critic_lr", "vary_values=[0.001,0.0001]"], "share it"),
+    (["vary=task.no_such_key", "vary_values=[1,2]"], "no such setting"),
+    (["vary=task.p_thresh", "vary_values=[0.1,0.1]"], "distinct"),
+])
+def test_bad_varied_batches_fail_before_training(tmp_path, overrides, message):
+    cfg = config(f"sweep_dir={tmp_path}", *overrides)
+    with pytest.raises(ConfigError, match=message):
+        batch.run_configs(cfg, batch.batch_runs(cfg))
+
+
+def test_a_batch_over_a_setting_gives_each_value_its_own_runs_and_folder(tmp_path):
+    cfg = config("algo=ours", "seeds=2", "vary=task.p_thresh", "vary_values=[0.1,0.3]", "total_steps=60",
+                 f"run_dir={tmp_path}/p${{task.p_thresh}}/seed${{seed}}")
+    runs = batch.batch_runs(cfg)
+    assert runs == [(0, 0.1), (1, 0.1), (0, 0.3), (1, 0.3)]
+    summaries = batch.train_batch(cfg, runs)
+    assert [(s["seed"], s["p_thresh"]) for s in summaries] == runs  # each run's trigger uses its own threshold
+    assert sorted(p.parent.name + "/" + p.name for p in tmp_path.glob("p*/seed*")) == \
+        ["p0.1/seed0", "p0.1/seed1", "p0.3/seed0", "p0.3/seed1"]

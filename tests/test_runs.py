@@ -66,12 +66,13 @@ def test_state_dict_resumes_exactly():
     assert torch.equal(p, q) and torch.equal(a.steps, b.steps)
 
 
-def test_masked_soft_update_is_softupdates_lerp_for_the_masked_runs_only():
+@pytest.mark.parametrize("mask", [[True, False, True, False], [True] * S, [False] * S])
+def test_masked_soft_update_is_softupdates_lerp_for_the_masked_runs_only(mask):
     gen = torch.Generator().manual_seed(2)
     source, target = torch.randn(S, 7, generator=gen), torch.randn(S, 7, generator=gen)
     expected = target.clone()
     update = RunMaskedSoftUpdate([source], [target], runs=S, tau=1e-3)
-    mask = torch.tensor([True, False, True, False])
+    mask = torch.tensor(mask)
     update.step(mask)
     for s in range(S):
         if mask[s]:

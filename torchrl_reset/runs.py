@@ -94,33 +94,47 @@ class RunMaskedAdam:
 
     @torch.no_grad()
     def step(self, mask: torch.Tensor) -> None:
-        """One Adam step for the runs where ``mask`` holds; the other runs are not touched."""
+        """One Adam step for the runs where ``mask`` holds; the other runs are not touched.
+
+        With every run in the mask the update runs in place on the whole stacks; otherwise on the
+        selected runs' rows only (gathered, updated, written back), so its cost follows the runs that
+        acted. Either way each run gets torch's arithmetic on its own rows."""
         mask = _check_mask(mask, self.runs).cpu()
         if not bool(mask.any()):
             return
         steps = self.steps + mask.long()
+        everyone = bool(mask.all())
+        index = mask.nonzero().squeeze(1)
+        counts = steps[index].tolist()
         for group in self.param_groups:
             beta1, beta2 = group["betas"]
             lr, eps = group["lr"], group["eps"]
-            # torch's bias corrections, in Python floats, per run (a run that does not step keeps
-            # whatever: its entries are not written)
-            bias1 = [1 - beta1 ** float(n) if n else 1.0 for n in steps.tolist()]
-            bias2 = [1 - beta2 ** float(n) if n else 1.0 for n in steps.tolist()]
+            # torch's bias corrections, in Python floats, per run that steps
+            bias1 = [1 - beta1 ** float(n) for n in counts]
+            bias2 = [1 - beta2 ** float(n) for n in counts]
             neg_step_size = [-(lr / b) for b in bias1]
             bias2_sqrt = [b**0.5 for b in bias2]
             for p in group["params"]:
                 if p.grad is None:
                     continue
-                state, grad = self.state[p], p.grad
-                where = mask.to(p.device).reshape(-1, *([1] * (p.dim() - 1)))
-                exp_avg = state["exp_avg"].lerp(grad, 1 - beta1)
-                exp_avg_sq = state["exp_avg_sq"].mul(beta2).addcmul_(grad, grad, value=1 - beta2)
-                denom = (exp_avg_sq.sqrt() / _per_run(bias2_sqrt, p)).add_(eps)
-                # param.addcdiv_(exp_avg, denom, value=-step_size) computes p + (value * exp_avg) / denom
-                updated = p + _per_run(neg_step_size, p) * exp_avg / denom
-                state["exp_avg"] = torch.where(where, exp_avg, state["exp_avg"])
-                state["exp_avg_sq"] = torch.where(where, exp_avg_sq, state["exp_avg_sq"])
-                p.copy_(torch.where(where, updated, p))
+                state = self.state[p]
+                step_size, root = _per_run(neg_step_size, p), _per_run(bias2_sqrt, p)
+                if everyone:
+                    exp_avg = state["exp_avg"].lerp_(p.grad, 1 - beta1)
+                    exp_avg_sq = state["exp_avg_sq"].mul_(beta2).addcmul_(p.grad, p.grad, value=1 - beta2)
+                    denom = (exp_avg_sq.sqrt() / root).add_(eps)
+                    # param.addcdiv_(exp_avg, denom, value=-step_size) computes p + (value * exp_avg) / denom
+                    p.add_(step_size * exp_avg / denom)
+                    continue
+                rows = index.to(p.device)
+                grad = p.grad.index_select(0, rows)
+                exp_avg = state["exp_avg"].index_select(0, rows).lerp_(grad, 1 - beta1)
+                exp_avg_sq = state["exp_avg_sq"].index_select(0, rows).mul_(beta2).addcmul_(grad, grad, value=1 - beta2)
+                denom = (exp_avg_sq.sqrt() / root).add_(eps)
+                updated = p.index_select(0, rows).add_(step_size * exp_avg / denom)
+                state["exp_avg"].index_copy_(0, rows, exp_avg)
+                state["exp_avg_sq"].index_copy_(0, rows, exp_avg_sq)
+                p.index_copy_(0, rows, updated)
         self.steps = steps
 
     def state_dict(self) -> dict:
@@ -166,9 +180,15 @@ class RunMaskedSoftUpdate:
     @torch.no_grad()
     def step(self, mask: torch.Tensor) -> None:
         mask = _check_mask(mask, self.runs)
+        if bool(mask.all()):
+            torch._foreach_lerp_(self.targets, self.sources, self.weight)
+            return
+        index = mask.cpu().nonzero().squeeze(1)
+        if index.numel() == 0:
+            return
         for source, target in zip(self.sources, self.targets):
-            where = mask.to(target.device).reshape(-1, *([1] * (target.dim() - 1)))
-            target.copy_(torch.where(where, target.lerp(source, self.weight), target))
+            rows = index.to(target.device)
+            target.index_copy_(0, rows, target.index_select(0, rows).lerp_(source.index_select(0, rows), self.weight))
 
 
 def run_logits(ensemble, observation: torch.Tensor, action: torch.Tensor, runs: int, params=None) -> torch.Tensor:
