@@ -11,6 +11,8 @@ heat-up is shortened, ``--heat-up``, so that the updates start sooner: it change
   for each S. Its ``summary.json`` times the iterations once every run's agents both update: the
   aggregate run-steps per second, and the time per run-step outside the update calls (env steps,
   policies, triggers, buffers, records).
+- **batched, split**: the S runs as two batches of about S / 2, one process per core with one
+  torch thread each (S >= 2); their aggregate rate is the sum of the two processes' rates.
 - **separate**: single runs, one torch thread each, two processes at a time on the two cores, as a
   grid of S runs would go: their aggregate rate is the sum of the two processes' rates, measured
   over the same steady steps (each run's ``step_seconds`` at its own forward share). S runs take
@@ -47,6 +49,10 @@ def command(out: Path, steps: int, heat_up: int, threads: int, *, seeds=None, se
     return args + ([f"seeds={seeds}"] if seeds is not None else [f"seed={seed}"])
 
 
+def seed_list(seeds) -> str:
+    return "[" + ",".join(str(s) for s in seeds) + "]"
+
+
 def summaries(out: Path, seeds) -> list[dict]:
     return [json.loads((out / TASK / ALGO / f"seed{s}" / "summary.json").read_text()) for s in seeds]
 
@@ -76,6 +82,8 @@ def main(argv=None) -> dict:
     parser.add_argument("--steps", type=int, default=1400, help="environment steps per run (default 1400)")
     parser.add_argument("--heat-up", type=int, default=200, help="steps of each phase before its agent updates")
     parser.add_argument("--threads", type=int, default=2, help="torch threads of a batched process (default 2)")
+    parser.add_argument("--no-split", dest="split", action="store_false",
+                        help="leave out the two-processes-of-S/2 layout")
     parser.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results")
     parser.add_argument("--override", action="append", default=[],
                         help="an extra recipe setting for every run (key=value; repeatable), stated in the results")
@@ -109,6 +117,21 @@ def main(argv=None) -> dict:
             report["batched"][count] = {**timing, "wall_seconds": time.perf_counter() - started,
                                         "forward_share": sum(s["forward_share"] for s in batch) / count}
             rows.append((count, timing))
+            if count < 2 or not args.split:
+                continue
+            halves = [list(range(0, (count + 1) // 2)), list(range((count + 1) // 2, count))]
+            out = tmp / f"split{count}"
+            started = time.perf_counter()
+            procs = [run(command(out, args.steps, args.heat_up, 1, seeds=seed_list(h), overrides=extra)) for h in halves]
+            for p in procs:
+                wait(p, f"a half of the split batch of {count}")
+            parts = [summaries(out, h)[0]["batch"] for h in halves]
+            if not all(t["steady_iterations"] for t in parts):
+                raise SystemExit(f"the split batch of {count} never reached steady state; give it more --steps.")
+            report.setdefault("split", {})[count] = {
+                "aggregate_run_steps_per_second": sum(t["run_steps_per_second"] for t in parts),
+                "outside_updates_ms_per_run_step": sum(t["outside_updates_ms_per_run_step"] * t["runs"] for t in parts) / count,
+                "processes": parts, "wall_seconds": time.perf_counter() - started}
     lines = [f"# Many runs in one process ({info['date']})", "",
              describe(info, args.threads) + " Batched: one process, "
              f"{args.threads} torch threads; separate: single runs, 1 thread each, two processes at a time.",
@@ -122,13 +145,21 @@ def main(argv=None) -> dict:
     for count, t in rows:
         ratio = t["run_steps_per_second"] / separate
         report["batched"][count]["ratio_vs_separate"] = ratio
-        lines.append(f"| {count} | {t['run_steps_per_second']:.1f} | {ratio:.2f}x | {t['outside_updates_ms_per_run_step']:.2f} "
-                     f"| {t['update_ms_per_iteration']:.1f} | {report['batched'][count]['forward_share']:.2f} |")
+        lines.append(f"| {count}, one process | {t['run_steps_per_second']:.1f} | {ratio:.2f}x "
+                     f"| {t['outside_updates_ms_per_run_step']:.2f} | {t['update_ms_per_iteration']:.1f} "
+                     f"| {report['batched'][count]['forward_share']:.2f} |")
+        split = report.get("split", {}).get(count)
+        if split:
+            split["ratio_vs_separate"] = split["aggregate_run_steps_per_second"] / separate
+            sizes = " + ".join(str(t["runs"]) for t in split["processes"])
+            lines.append(f"| {count}, two processes ({sizes}) | {split['aggregate_run_steps_per_second']:.1f} "
+                         f"| {split['ratio_vs_separate']:.2f}x | {split['outside_updates_ms_per_run_step']:.2f} | | |")
     checks = []
     if 5 in report["batched"]:
         b5 = report["batched"][5]
-        checks += [(f"S = 5 batched >= {TARGET_RATIO_S5}x separate processes", f"{b5['ratio_vs_separate']:.2f}x",
-                    b5["ratio_vs_separate"] >= TARGET_RATIO_S5),
+        best = max([b5["ratio_vs_separate"], report.get("split", {}).get(5, {}).get("ratio_vs_separate", 0.0)])
+        checks += [(f"S = 5 batched (the better layout) >= {TARGET_RATIO_S5}x separate processes", f"{best:.2f}x",
+                    best >= TARGET_RATIO_S5),
                    (f"S = 5: <= {TARGET_OUTSIDE_MS_S5} ms per run-step outside the updates",
                     f"{b5['outside_updates_ms_per_run_step']:.2f}", b5["outside_updates_ms_per_run_step"] <= TARGET_OUTSIDE_MS_S5)]
     if checks:

@@ -120,20 +120,24 @@ def run_configs(cfg: DictConfig, runs: list, *, check: bool = True) -> list[Dict
 
 
 class RunRNG:
-    """A run's own random streams (torch's, numpy's and Python's global generators), swapped in while
-    that run acts so that each run draws exactly the numbers it would draw alone."""
+    """A run's own random streams (torch's, numpy's and Python's global generators, and the current
+    CUDA device's once CUDA is in use), swapped in while that run acts so that each run draws exactly
+    the numbers it would draw alone."""
 
     def __init__(self) -> None:
         self.capture()
 
     def capture(self) -> None:
         self.torch, self.numpy, self.python = torch.get_rng_state(), np.random.get_state(), random.getstate()
+        self.cuda = torch.cuda.get_rng_state() if torch.cuda.is_available() and torch.cuda.is_initialized() else None
 
     @contextlib.contextmanager
     def active(self) -> Iterator[None]:
         torch.set_rng_state(self.torch)
         np.random.set_state(self.numpy)
         random.setstate(self.python)
+        if self.cuda is not None:
+            torch.cuda.set_rng_state(self.cuda)
         try:
             yield
         finally:

@@ -11,6 +11,7 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 sys.path.insert(0, str(ROOT / "recipes"))
 
 import bench_loop  # noqa: E402
+import bench_runs  # noqa: E402
 import bench_updates  # noqa: E402
 
 # peg-insertion: 14 observations, 7 actions; the paper's 400-300 networks
@@ -90,6 +91,24 @@ def test_loop_benchmark_command_gives_ratios_and_the_paper_run_projection(tmp_pa
         assert ratio == pytest.approx(rates["ours"] / rates[name])
     assert report["projected_paper_run_hours"] == pytest.approx(1_500_000 / rates["ours"] / 3600)
     assert "paper run" in next(tmp_path.glob("*.md")).read_text()
+
+
+def test_runs_benchmark_command_gives_the_batch_against_separate_processes(tmp_path):
+    tiny = ["hidden_sizes=[16,16]", "task.forward_horizon=20", "forward.batch_size=16", "reset.batch_size=16"]
+    report = bench_runs.main(["--runs", "1", "3", "--steps", "160", "--heat-up", "20", "--out", str(tmp_path),
+                              *[f"--override={o}" for o in tiny]])
+    assert sorted(p.suffix for p in tmp_path.iterdir()) == [".json", ".md"]
+    separate = report["separate"]["aggregate_steps_per_second"]
+    assert separate == pytest.approx(sum(bench_runs.steady_rate(r) for r in report["separate"]["runs"]))
+    assert set(report["batched"]) == {1, 3} and set(report["split"]) == {3}  # S = 1 has no split
+    for count, row in report["batched"].items():
+        assert row["runs"] == count and row["steady_iterations"] > 0
+        assert row["ratio_vs_separate"] == pytest.approx(row["run_steps_per_second"] / separate)
+    split = report["split"][3]
+    assert [p["runs"] for p in split["processes"]] == [2, 1]
+    assert split["aggregate_run_steps_per_second"] == pytest.approx(sum(p["run_steps_per_second"] for p in split["processes"]))
+    text = next(tmp_path.glob("*.md")).read_text()
+    assert "two processes (2 + 1)" in text and "hidden_sizes=[16,16]" in text
 
 
 @pytest.mark.skipif(torch.cuda.is_available(), reason="checks the message of a machine without CUDA")
