@@ -95,12 +95,12 @@ def test_loop_benchmark_command_gives_ratios_and_the_paper_run_projection(tmp_pa
 
 def test_runs_benchmark_command_gives_the_batch_against_separate_processes(tmp_path):
     tiny = ["hidden_sizes=[16,16]", "task.forward_horizon=20", "forward.batch_size=16", "reset.batch_size=16"]
-    report = bench_runs.main(["--runs", "1", "3", "--steps", "160", "--heat-up", "20", "--out", str(tmp_path),
+    report = bench_runs.main(["--runs", "3", "--steps", "160", "--heat-up", "20", "--out", str(tmp_path),
                               *[f"--override={o}" for o in tiny]])
     assert sorted(p.suffix for p in tmp_path.iterdir()) == [".json", ".md"]
     separate = report["separate"]["aggregate_steps_per_second"]
     assert separate == pytest.approx(sum(bench_runs.steady_rate(r) for r in report["separate"]["runs"]))
-    assert set(report["batched"]) == {1, 3} and set(report["split"]) == {3}  # S = 1 has no split
+    assert set(report["batched"]) == {3} and set(report["split"]) == {3}
     for count, row in report["batched"].items():
         assert row["runs"] == count and row["steady_iterations"] > 0
         assert row["ratio_vs_separate"] == pytest.approx(row["run_steps_per_second"] / separate)
