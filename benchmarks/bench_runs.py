@@ -37,6 +37,7 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 from bench_updates import describe, machine, write_results  # noqa: E402
 
 TASK, ALGO = "peg_insertion_insert", "ours"
+GRID_RUNS, PAPER_STEPS = 90, 1_500_000  # the paper's Table 1: 6 tasks x 3 algorithms x 5 seeds, 1.5M steps each
 TARGET_RATIO_S5 = 1.7  # S = 5 batched against separate processes, two CPU cores
 TARGET_OUTSIDE_MS_S5 = 1.0  # per run-step outside the updates at S = 5
 
@@ -154,6 +155,15 @@ def main(argv=None) -> dict:
             sizes = " + ".join(str(t["runs"]) for t in split["processes"])
             lines.append(f"| {count}, two processes ({sizes}) | {split['aggregate_run_steps_per_second']:.1f} "
                          f"| {split['ratio_vs_separate']:.2f}x | {split['outside_updates_ms_per_run_step']:.2f} | | |")
+    rates = {"separate processes": separate}
+    rates.update({f"S = {c}, one process": report["batched"][c]["run_steps_per_second"] for c in report["batched"]})
+    rates.update({f"S = {c}, two processes": v["aggregate_run_steps_per_second"] for c, v in report.get("split", {}).items()})
+    best = max(rates, key=rates.get)
+    hours = GRID_RUNS * PAPER_STEPS / rates[best] / 3600
+    report["projected_table1_grid"] = {"layout": best, "run_steps_per_second": rates[best], "hours": hours}
+    lines += ["", f"The paper's whole Table 1 grid ({GRID_RUNS} runs x {PAPER_STEPS:,} steps) at the best rate measured "
+              f"here ({best}, {rates[best]:.1f} run-steps/s): {hours:,.0f} hours ({hours / 24:.0f} days) on this machine "
+              "(peg-insertion's step costs; the other tasks' differ)."]
     checks = []
     if 5 in report["batched"]:
         b5 = report["batched"][5]

@@ -108,7 +108,9 @@ def test_runs_benchmark_command_gives_the_batch_against_separate_processes(tmp_p
     assert [p["runs"] for p in split["processes"]] == [2, 1]
     assert split["aggregate_run_steps_per_second"] == pytest.approx(sum(p["run_steps_per_second"] for p in split["processes"]))
     text = next(tmp_path.glob("*.md")).read_text()
-    assert "two processes (2 + 1)" in text and "hidden_sizes=[16,16]" in text
+    assert "two processes (2 + 1)" in text and "hidden_sizes=[16,16]" in text and "Table 1 grid" in text
+    assert report["projected_table1_grid"]["hours"] == pytest.approx(
+        90 * 1_500_000 / report["projected_table1_grid"]["run_steps_per_second"] / 3600)
 
 
 @pytest.mark.skipif(torch.cuda.is_available(), reason="checks the message of a machine without CUDA")
