@@ -75,7 +75,7 @@ def reference_step(agent, td, names) -> dict:
     sum(losses[n] for n in names).backward()
     agent.optimizer.step()
     agent.targets.step()
-    return {n: float(losses[n]) for n in names}
+    return {n: float(losses[n].detach()) for n in names}
 
 
 CASES = [("ours", "reset"), ("ours", "forward"), ("lnt", "reset"), ("lnt_sparse", "reset")]
@@ -160,6 +160,18 @@ def test_exported_state_reloads_into_a_new_batch_exactly():
     for s in range(S):
         x, y = first[s].loss.state_dict(), second[s].loss.state_dict()
         assert all(torch.equal(x[k], y[k]) for k in x)
+
+
+def test_policies_of_another_layout_are_refused():
+    from tensordict.nn import TensorDictModule, TensorDictSequential
+    from torchrl.modules import TanhModule
+
+    net = torch.nn.Sequential(torch.nn.Linear(OBS, 8), torch.nn.Tanh(), torch.nn.Linear(8, ACT))
+    actor = TensorDictSequential(TensorDictModule(net, ["observation"], ["action_preactivation"]),
+                                 TanhModule(["action_preactivation"], ["action"], spec=spec()))
+    from torchrl_reset.run_agents import RunPolicies
+    with pytest.raises(ValueError, match="ReLU MLP"):
+        RunPolicies([actor, actor])
 
 
 def test_bind_runs_makes_each_tensor_a_view_and_refuses_mixed_shapes():

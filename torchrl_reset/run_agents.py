@@ -71,8 +71,11 @@ class RunPolicies:
         self.runs = len(actors)
         layers = [[(name, m) for name, m in actor.named_modules() if isinstance(m, nn.Linear)] for actor in actors]
         tanh = [m for m in actors[0].modules() if isinstance(m, TanhModule)]
-        if not layers[0] or len(tanh) != 1 or len({len(x) for x in layers}) != 1:
-            raise ValueError("RunPolicies needs S policies of the same MLP layout ending in one TanhModule.")
+        leaves = {type(m) for actor in actors for m in actor.modules() if not list(m.children())}
+        if (not layers[0] or len(tanh) != 1 or len({len(x) for x in layers}) != 1
+                or not leaves <= {nn.Linear, nn.ReLU, TanhModule}):
+            raise ValueError("RunPolicies needs S policies of the same ReLU MLP layout ending in one TanhModule "
+                             f"(the recipe's make_actor); got modules {sorted(t.__name__ for t in leaves)}.")
         self.tanh = tanh[0]
         self.preactivation_key = self.tanh.in_keys[0]
         self.action_key = self.tanh.out_keys[0]
