@@ -236,9 +236,7 @@ def _train_batch(configs: list[DictConfig]) -> list[dict]:
     runs, streams = [], []
     for run_cfg in configs:
         # each run is built from its own seed, in the order a run alone draws its random numbers
-        torch.manual_seed(run_cfg.seed)
-        np.random.seed(run_cfg.seed)
-        random.seed(run_cfg.seed)
+        train.seed_process(int(run_cfg.seed))
         runs.append(train.build_run(run_cfg, precision))
         streams.append(RunRNG())
     updates = BatchedUpdates(runs)

@@ -65,6 +65,13 @@ def train(cfg: DictConfig) -> dict:
         return _train(cfg)
 
 
+def seed_process(seed: int) -> None:
+    """Seeds torch's, numpy's and Python's global generators, as a run does before it builds anything."""
+    torch.manual_seed(seed)
+    np.random.seed(seed)
+    random.seed(seed)
+
+
 def set_up_process(cfg: DictConfig) -> str:
     """Torch threads, the ``speed.*`` settings and the seeds; returns the CPU product precision chosen."""
     torch.set_num_threads(torch_threads(cfg))
@@ -75,9 +82,7 @@ def set_up_process(cfg: DictConfig) -> str:
     on_cpu = torch.device(cfg.device).type == "cpu"
     setting = OmegaConf.select(cfg, "speed.matmul_precision", default="ieee") if on_cpu and accelerate else "ieee"
     precision = choose_matmul_precision(setting)
-    torch.manual_seed(cfg.seed)
-    np.random.seed(cfg.seed)
-    random.seed(cfg.seed)
+    seed_process(int(cfg.seed))
     logging.getLogger("torchrl").setLevel(logging.WARNING)
     return precision
 

@@ -357,10 +357,6 @@ class _RunUpdate:
         """Run ``run``'s optimizer state into its own optimizer (before its checkpoint)."""
         export_run_optimizer(self.optimizer, self.optimizers[run], self.id_to_slot, run)
 
-    def reload(self) -> None:
-        """The per-run optimizers' state into the batched one (after the runs loaded their checkpoints)."""
-        load_run_optimizers(self.optimizer, self.optimizers, self.id_to_slot)
-
 
 class RunDDPGUpdate(_RunUpdate):
     """DDPG for S runs: the forward agent (K = 1) or LNT's reset agent (a K-member Q ensemble).
