@@ -2,6 +2,7 @@
 
 Implements Kim et al., "Automating Reinforcement Learning with Example-based Resets" (RA-L 2022).
 """
+from .batched_collector import BatchedDualCollector, split_phases
 from .collector import DualCollector, find_trigger_transforms
 from .ensemble import EnsembleValueOperator, reduce_members, success_classifier, success_probability
 from .example_buffer import InitialStateBuffer
@@ -14,6 +15,7 @@ __version__ = "0.1.0"
 
 __all__ = [
     "accel",
+    "BatchedDualCollector",
     "DualCollector",
     "EnsembleValueOperator",
     "EpisodeWindowSampler",
@@ -23,6 +25,7 @@ __all__ = [
     "ResetTriggerTransform",
     "find_trigger_transforms",
     "reduce_members",
+    "split_phases",
     "success_classifier",
     "success_probability",
 ]

@@ -23,6 +23,7 @@ from collections.abc import Sequence
 import torch
 import torch.nn.functional as F
 from tensordict import TensorDict, TensorDictBase
+from tensordict.nn import TensorDictModule
 from torch import nn
 from torchrl.modules import TanhModule
 
@@ -117,6 +118,12 @@ class RunPolicies:
         return self.tanh(td).get(self.action_key)
 
 
+    def module(self, out_key: str = "action") -> TensorDictModule:
+        """The S runs' policies acting on a batch of S rows, row ``s`` by run ``s`` (one env copy per
+        run, :class:`~torchrl_reset.BatchedDualCollector`): ``[S, d]`` observations to ``[S, a]`` actions."""
+        return TensorDictModule(lambda obs: self(obs.unsqueeze(1)).squeeze(1), in_keys=[self.in_key], out_keys=[out_key])
+
+
 _TRAINED = ("weight_{}", "bias_{}")
 
 
@@ -153,6 +160,10 @@ class RunEnsembles:
         targets: optional, per run, the target copy's tensors by name (``loss.target_value_network_params``
             or ``loss.target_classifier_network_params``).
     """
+
+    #: up to this many rows per run (acting: one row), trained and prior members run as two stacks: joining
+    #: them would copy every weight once per call, which costs more than it saves on so few rows
+    SEPARATE_PRIOR_ROWS = 16
 
     def __init__(self, ensembles: Sequence[EnsembleValueOperator], targets: Sequence[TensorDictBase] | None = None) -> None:
         first = ensembles[0]
@@ -194,12 +205,12 @@ class RunEnsembles:
             out = _head(_trunk(_per_member(observation, k), *layers[:2]), _per_member(action, k), *layers)
             return out.reshape(count, k, n).transpose(1, 2)
         priors = self._layers(self.priors, runs, prefix="prior_")
-        if torch.is_grad_enabled():
+        if torch.is_grad_enabled() or n <= self.SEPARATE_PRIOR_ROWS:
             x, a = _per_member(observation, k), _per_member(action, k)
             f = _head(_trunk(x, *layers[:2]), a, *layers)
             g = _head(_trunk(x, *priors[:2]), a, *priors)  # frozen: gradient reaches the action only
             return (f + self.prior_scale * g).reshape(count, k, n).transpose(1, 2)
-        # without gradients, each run's trained and prior members run as one stack of 2K
+        # without gradients, on many rows, each run's trained and prior members run as one stack of 2K
         def both(trained: torch.Tensor, prior: torch.Tensor) -> torch.Tensor:
             return torch.cat([trained.reshape(count, k, *trained.shape[1:]), prior.reshape(count, k, *prior.shape[1:])],
                              1).reshape(count * 2 * k, *trained.shape[1:])
@@ -209,6 +220,14 @@ class RunEnsembles:
         out = _head(_trunk(_per_member(observation, 2 * k), *stacked[:2]), _per_member(action, 2 * k), *stacked,
                     overwrite=True).reshape(count, 2 * k, n)
         return (out[:, :k] + self.prior_scale * out[:, k:]).transpose(1, 2)
+
+    def module(self, out_key: str | None = None) -> TensorDictModule:
+        """The S runs' ensembles scoring a batch of S rows, row ``s`` by run ``s``'s K members (the trigger's
+        model over one env copy per run): ``observation`` ``[S, d]`` and ``action`` ``[S, a]`` to ``[S, K]``.
+        ``out_key`` defaults to the ensembles' own output key."""
+        key = out_key or self.template.out_keys[0]
+        return TensorDictModule(lambda obs, act: self.logits(obs.unsqueeze(1), act.unsqueeze(1)).squeeze(1),
+                                in_keys=list(self.template.in_keys), out_keys=[key])
 
     def paired(self, observation: torch.Tensor, action: torch.Tensor, policy_action: torch.Tensor, start: int,
                runs: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:

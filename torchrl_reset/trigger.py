@@ -66,7 +66,10 @@ class ResetTriggerTransform(Transform):
 
     Attributes:
         enabled (bool): when ``False`` the model is not evaluated and nothing triggers; the
-            collector turns it off during reset episodes.
+            collector turns it off during reset episodes. On a batched env whose copies are in
+            different phases (:class:`~torchrl_reset.BatchedDualCollector`), :meth:`set_enabled`
+            takes a mask of the batch instead: only its rows can trigger, and ``enabled`` says
+            whether any row is on.
 
     Examples:
         >>> import torch
@@ -129,12 +132,36 @@ class ResetTriggerTransform(Transform):
         self.done_key = done_key
         self.truncated_key = truncated_key
         self.enabled = True
+        self._rows: torch.Tensor | None = None  # the enabled rows of a batched env, or None: all or nothing
         self._smoothed: torch.Tensor | None = None
 
-    def set_enabled(self, enabled: bool) -> None:
-        """Turns the trigger on or off; (re-)enabling restarts the smoothing."""
+    def set_enabled(self, enabled: bool | torch.Tensor, *, restart: torch.Tensor | None = None) -> None:
+        """Turns the trigger on or off; (re-)enabling restarts the smoothing.
+
+        ``enabled`` may be a boolean tensor of the env's batch shape: rows where it is False are
+        not triggered (their score reads NaN, as a disabled trigger's), and a row turned on restarts
+        its own smoothing, as do the rows of ``restart`` (a new episode in a row that stays on); the
+        other rows keep theirs."""
+        if isinstance(enabled, torch.Tensor) and enabled.dtype == torch.bool:
+            rows = enabled.detach().clone()
+            if self._smoothed is not None and self._rows is not None and self._smoothed.shape == rows.shape:
+                keep = rows & self._rows if restart is None else rows & self._rows & ~restart.reshape(rows.shape)
+                self._smoothed = torch.where(keep, self._smoothed, torch.full_like(self._smoothed, float("nan")))
+            else:
+                self._smoothed = None
+            self._rows = rows
+            self.enabled = bool(rows.any())
+            return
+        if isinstance(enabled, torch.Tensor):
+            raise TypeError(f"set_enabled takes a bool or a boolean mask of the batch, got a {enabled.dtype} tensor.")
         self.enabled = bool(enabled)
+        self._rows = None
         self._smoothed = None
+
+    @property
+    def enabled_rows(self) -> torch.Tensor | None:
+        """The mask last given to :meth:`set_enabled`, or None when the trigger is on or off as a whole."""
+        return self._rows
 
     def evaluate(self, tensordict: TensorDictBase) -> torch.Tensor:
         """The reduced score of the (observation, action) pairs in ``tensordict``, shape ``batch_size``."""
@@ -168,11 +195,20 @@ class ResetTriggerTransform(Transform):
         :class:`~torchrl_reset.DualCollector` calls it on the action drawn after the H_f-th step
         (Algorithm 1 scores that action before it checks the horizon)."""
         score = self.evaluate(tensordict)
+        rows = self._rows
+        if rows is not None and rows.shape != score.shape:
+            raise ValueError(f"set_enabled was given a mask of shape {tuple(rows.shape)}; the env's batch is "
+                             f"{tuple(score.shape)}.")
         if self.smoothing > 0:
             if self._smoothed is not None and self._smoothed.shape == score.shape:
-                score = self.smoothing * self._smoothed + (1.0 - self.smoothing) * score
-            self._smoothed = score
+                previous = self._smoothed
+                smoothed = self.smoothing * previous + (1.0 - self.smoothing) * score
+                score = smoothed if rows is None else torch.where(previous.isnan(), score, smoothed)
+            self._smoothed = score if rows is None else torch.where(rows, score, torch.full_like(score, float("nan")))
         trigger = score < self.threshold
+        if rows is not None:  # a row that is off never triggers and reads as off
+            trigger = trigger & rows
+            score = torch.where(rows, score, torch.full_like(score, float("nan")))
         tensordict.set(self.score_key, score.unsqueeze(-1))
         tensordict.set(self.trigger_key, trigger.unsqueeze(-1))
         return trigger
@@ -210,7 +246,13 @@ class ResetTriggerTransform(Transform):
         return next_tensordict
 
     def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase) -> TensorDictBase:
-        self._smoothed = None
+        partial = None if tensordict is None else tensordict.get("_reset", None)
+        if partial is not None and self._smoothed is not None and partial.numel() == self._smoothed.numel():
+            # a partial reset of a batched env: only the rows reset restart their smoothing
+            self._smoothed = torch.where(partial.reshape(self._smoothed.shape),
+                                         torch.full_like(self._smoothed, float("nan")), self._smoothed)
+        else:
+            self._smoothed = None
         shape = (*tensordict_reset.batch_size, 1)
         tensordict_reset.set(self.score_key, torch.full(shape, float("nan"), device=tensordict_reset.device))
         tensordict_reset.set(self.trigger_key, torch.zeros(shape, dtype=torch.bool, device=tensordict_reset.device))

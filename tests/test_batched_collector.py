@@ -1,0 +1,185 @@
+"""BatchedDualCollector: N copies in their own phases, each exactly as DualCollector runs it alone.
+
+The policies and the trigger's model are elementwise functions of the observation (no matrix
+products), so a row computed in a batch of N and the same row computed alone are the same float
+numbers: the batched copies must reproduce the single collectors bit for bit. Each copy gets its own
+gains, so the copies fall out of step (different phases at the same iteration) and, between them,
+end episodes in every way Algorithm 1 has: trigger, H_f (requested), success and manual reset.
+"""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from tensordict.nn import TensorDictModule
+from torchrl.envs import TransformedEnv
+
+from torchrl_reset import BatchedDualCollector, DualCollector, InitialStateBuffer, ResetTriggerTransform, split_phases
+from torchrl_reset_envs import BatchedTaskEnv, make_env
+
+TASK = "peg_insertion_insert"
+SEEDS = [0, 1, 2]
+HORIZONS = dict(max_forward_steps=20, max_reset_steps=15, min_reset_steps=3)
+FORWARD_GAIN = torch.tensor([[0.3], [0.6], [1.0]])  # copy i's forward policy scale
+RESET_GAIN = torch.tensor([[1.0], [2.5], [5.0]])  # copy i's reset controller gain (weak gains fail: manual resets)
+KEYS = ["observation", "action", ("next", "observation"), ("next", "done"), ("next", "truncated"), ("collector", "phase")]
+
+
+@pytest.fixture(scope="module")
+def start_joints():
+    return make_env(TASK, seed=0).reset()["observation"][:7].clone()
+
+
+def forward_policy(gain):
+    return TensorDictModule(lambda obs: gain * torch.sin(3 * obs[..., :7] + 1.0), in_keys=["observation"], out_keys=["action"])
+
+
+def reset_policy(gain, q0):
+    # a PD controller back to the start joints: strong gains come back within H_r, weak ones do not
+    return TensorDictModule(lambda obs: (-gain * (obs[..., :7] - q0) - 0.5 * obs[..., 7:14]).clamp(-1, 1),
+                            in_keys=["observation"], out_keys=["action"])
+
+
+def trigger(smoothing=0.0):
+    def logits(obs, act):  # two members, elementwise: the same numbers in a batch and alone
+        z = 3 * obs[..., 2:3] + 1.5 * act[..., 0:1] + 0.5
+        return torch.cat([z - 0.5, z + 0.3], -1)
+
+    model = TensorDictModule(logits, in_keys=["observation", "action"], out_keys=["logits"])
+    return ResetTriggerTransform(model, 0.3, smoothing=smoothing)
+
+
+def single_runs(q0, steps, smoothing=0.0):
+    runs = []
+    for i, seed in enumerate(SEEDS):
+        env = make_env(TASK, seed=seed)
+        env.append_transform(trigger(smoothing))
+        collector = DualCollector(env, forward_policy(FORWARD_GAIN[i]), reset_policy(RESET_GAIN[i], q0),
+                                  total_frames=steps, **HORIZONS)
+        trace = torch.cat([batch.select(*KEYS).clone() for batch in collector])
+        runs.append((collector, trace))
+    return runs
+
+
+def batched(q0, steps, smoothing=0.0, **kwargs):
+    env = TransformedEnv(BatchedTaskEnv(TASK, seeds=SEEDS), trigger(smoothing))
+    return BatchedDualCollector(env, forward_policy(FORWARD_GAIN), reset_policy(RESET_GAIN, q0),
+                                max_frames_per_env=steps, **HORIZONS, **kwargs)
+
+
+def per_copy(batches):
+    rows = {i: [] for i in range(len(SEEDS))}
+    for batch in batches:
+        for i in rows:
+            mine = batch["collector", "env_ids"] == i
+            if mine.any():
+                rows[i].append(batch[mine].select(*KEYS))
+    return {i: torch.cat(r) for i, r in rows.items()}
+
+
+@pytest.mark.parametrize("smoothing", [0.0, 0.5])
+def test_each_copy_is_the_single_collector(start_joints, smoothing):
+    steps = 600
+    singles = single_runs(start_joints, steps, smoothing)
+    collector = batched(start_joints, steps, smoothing)
+    mixed = 0
+    batches = []
+    for batch in collector:
+        mixed += len(set(collector.phases)) > 1
+        batches.append(batch)
+    traces = per_copy(batches)
+    assert mixed > 100  # the copies are in different phases for much of the run
+    for i, (alone, trace) in enumerate(singles):
+        assert collector.env_metrics()[i] == pytest.approx(alone.metrics(), nan_ok=True)
+        for key in KEYS:
+            assert torch.equal(traces[i].get(key), trace.get(key)), (i, key)
+        assert torch.equal(collector.example_buffers[i].states()["observation"], alone.example_buffer.states()["observation"])
+    total = collector.metrics()
+    outcomes = ("triggered_resets", "successful_resets") if smoothing else (
+        "triggered_resets", "requested_resets", "successful_resets", "manual_resets")
+    for outcome in outcomes:  # without smoothing, every way an episode ends was exercised
+        assert total[outcome] > 0, outcome
+    assert collector.frames == steps * len(SEEDS)
+    assert all(m["forward_steps"] + m["reset_steps"] == steps for m in collector.env_metrics())
+
+
+def test_a_triggered_copy_is_not_stepped_while_the_others_are(start_joints):
+    collector = batched(start_joints, 200)
+    seen = 0
+    previous = None
+    for batch in collector:
+        if previous is not None:
+            stepped = set(batch["collector", "env_ids"].tolist())
+            skipped = [i for i in range(3) if i not in stepped]
+            for i in skipped:  # a copy that executed nothing kept its simulator state
+                assert torch.equal(collector._td["observation"][i], previous[i])
+                seen += 1
+        previous = collector._td["observation"].clone()
+    assert seen > 0
+
+
+def test_shared_mode_one_example_buffer_and_unique_episodes(start_joints):
+    collector = batched(start_joints, 300, shared_examples=True)
+    ids = {}
+    for batch in collector:
+        for env, traj in zip(batch["collector", "env_ids"].tolist(), batch["collector", "traj_ids"].tolist()):
+            assert ids.setdefault(traj, env) == env  # an episode id belongs to one copy
+        phases = split_phases(batch)
+        assert sum(td.shape[0] for td in phases.values()) == batch.shape[0]
+    assert len(collector.example_buffers) == 1
+    total = collector.metrics()
+    # one example per forward episode started: the N first states plus one per ended reset episode
+    assert len(collector.example_buffers[0]) == len(SEEDS) + total["reset_episodes"] + total["terminations"]
+
+
+def test_resume_continues_exactly(start_joints):
+    whole = per_copy(list(batched(start_joints, 400)))
+    first = batched(start_joints, 400)
+    iterator = iter(first)
+    head = [next(iterator) for _ in range(150)]
+    state = first.state_dict()
+    resumed = batched(start_joints, 400)
+    resumed.load_state_dict(state)
+    tail = list(resumed)
+    again = per_copy(head + tail)
+    for i in whole:
+        for key in KEYS:
+            assert torch.equal(whole[i].get(key), again[i].get(key))
+    assert resumed.env_metrics() == batched_metrics(start_joints, 400)
+
+
+def batched_metrics(q0, steps):
+    collector = batched(q0, steps)
+    for _ in collector:
+        pass
+    return collector.env_metrics()
+
+
+def test_bad_inputs(start_joints):
+    with pytest.raises(ValueError, match=r"batch size \[N\]"):
+        BatchedDualCollector(make_env(TASK), forward_policy(1.0), reset_policy(1.0, start_joints), max_forward_steps=5)
+    env = BatchedTaskEnv(TASK, seeds=SEEDS)
+    with pytest.raises(ValueError, match="one per copy"):
+        BatchedDualCollector(env, forward_policy(1.0), reset_policy(1.0, start_joints), max_forward_steps=5,
+                             example_buffers=[InitialStateBuffer(), InitialStateBuffer()])
+    with pytest.raises(ValueError, match="num_envs"):
+        BatchedTaskEnv(TASK, num_envs=2, seeds=SEEDS)
+    with pytest.raises(ValueError, match="robot"):
+        BatchedTaskEnv("ur3_peg", num_envs=2)
+
+
+def test_trigger_rows_off_never_fire_and_restart_their_smoothing():
+    model = TensorDictModule(lambda obs, act: obs[..., :2] * 0 - 10.0, in_keys=["observation", "action"], out_keys=["logits"])
+    t = ResetTriggerTransform(model, 0.3, smoothing=0.5)
+    td = __import__("tensordict").TensorDict({"observation": torch.zeros(3, 2), "action": torch.zeros(3, 1)}, batch_size=[3])
+    t.set_enabled(torch.tensor([True, False, True]))
+    fired = t.score_step(td.clone())
+    assert fired.tolist() == [True, False, True]  # logit -10: C ~ 0, p ~ 0 < 0.3, but row 1 is off
+    scored = td.clone()
+    t.score_step(scored)
+    assert np.isnan(scored["success_probability"][1].item())
+    # row 0 restarts: its smoothing state is dropped, row 2 keeps its own
+    t.set_enabled(torch.tensor([True, False, True]), restart=torch.tensor([True, False, False]))
+    assert np.isnan(t._smoothed[0].item()) and not np.isnan(t._smoothed[2].item())
+    with pytest.raises(TypeError, match="boolean mask"):
+        t.set_enabled(torch.ones(3))

@@ -1,0 +1,435 @@
+"""Algorithm 1 on N copies of a task at once, each copy in its own phase (method.md section 2)."""
+from __future__ import annotations
+
+from collections import OrderedDict
+from collections.abc import Callable, Iterator, Sequence
+
+import numpy as np
+import torch
+from tensordict import TensorDict, TensorDictBase
+from tensordict.utils import NestedKey
+from torchrl.collectors import BaseCollector
+from torchrl.envs import EnvBase
+from torchrl.envs.utils import ExplorationType, set_exploration_type, step_mdp
+
+from ._validation import check_int, is_int_at_least
+from .collector import COUNTERS, FORWARD, PHASE_NAMES, RESET, _state_owner, find_trigger_transforms
+from .example_buffer import InitialStateBuffer
+
+__all__ = ["BatchedDualCollector", "split_phases"]
+
+
+def split_phases(batch: TensorDictBase) -> dict[str, TensorDictBase]:
+    """The rows of a :class:`BatchedDualCollector` batch by phase: ``{"forward": ..., "reset": ...}``
+    (a phase with no executed step this iteration is left out)."""
+    phase = batch.get(("collector", "phase")).reshape(-1)
+    out = {}
+    for code, name in PHASE_NAMES.items():
+        rows = (phase == code).nonzero().flatten()
+        if rows.numel():
+            out[name] = batch[rows]
+    return out
+
+
+def _rows_mask(mask: np.ndarray, like: torch.Tensor) -> torch.Tensor:
+    return torch.from_numpy(mask).to(like.device).reshape(-1, *([1] * (like.dim() - 1)))
+
+
+class BatchedDualCollector(BaseCollector):
+    """:class:`~torchrl_reset.DualCollector`'s loop on an env of batch size ``[N]``: N copies of a task,
+    each in its own phase.
+
+    Every copy follows Algorithm 1 on its own, as :class:`~torchrl_reset.DualCollector` runs it on one
+    env: its own phase (forward or reset), H_f / H_r clocks, trigger decisions, successful and manual
+    resets, counters and (unless shared) example buffer. One iteration takes one action in every
+    copy: the forward policy acts for the copies in a forward episode and the reset policy for the
+    others, each called once on the whole batch (its outputs, its exploration state included, are
+    kept on its own rows), and one ``env.step`` steps them all. A copy whose action the trigger
+    stops is not stepped while the others are (torchrl's partial steps: the env must honour
+    ``"_step"``, as :class:`~torchrl_reset_envs.BatchedTaskEnv` and ``SerialEnv`` do); a manual reset
+    resets that copy only (``"_reset"``). After a copy's H_f-th step, its next action is scored
+    at the next iteration and not executed (Algorithm 1's order: trigger first, then the horizon).
+
+    Each iteration yields the steps it executed, batch ``[M]`` (M <= N), each row tagged with
+    ``("collector", "phase")``, ``("collector", "env_ids")`` (its copy) and ``("collector", "traj_ids")``
+    (unique over all copies): :func:`split_phases` sorts them for the two agents' buffers.
+
+    The same collector serves both uses, by configuration:
+
+    - **independent runs** (``shared_examples=False``, the default): copy ``i`` is run ``i``, with its
+      own example buffer (``example_buffers[i]``) and metrics (:meth:`env_metrics`); the policies
+      and the trigger's model compute row ``i`` with run ``i``'s networks (for example
+      :class:`~torchrl_reset.run_agents.RunPolicies` and ``RunEnsembles``), and ``max_frames_per_env``
+      stops each run at its own budget;
+    - **one agent pair over N environments** (``shared_examples=True``; N arms in one cell): one
+      example buffer receives every copy's initial states, the policies are ordinary modules over
+      the batch, and :meth:`metrics` sums the copies.
+
+    Args:
+        create_env_fn (EnvBase or callable): an env of batch size ``[N]`` with the trigger transform
+            outermost (its model sees the batch), or a function returning one.
+        forward_policy, reset_policy (callable): tensordict modules over the batch, with their exploration.
+
+    Keyword Args:
+        max_forward_steps, max_reset_steps, min_reset_steps, reset_success_key, trigger_key, init_key,
+        exploration_type, max_events: as :class:`~torchrl_reset.DualCollector`.
+        total_frames (int): executed steps of all copies together after which iteration stops; -1 (default) never.
+        max_frames_per_env (int, optional): a copy that executed this many steps stops (its rows are
+            neither stepped nor scored); iteration ends when every copy stopped.
+        example_buffers (InitialStateBuffer or sequence of them, optional): one shared buffer, or one per copy.
+        shared_examples (bool): when no buffers are given, one shared buffer (True) or one per copy (False, default).
+        example_keys (sequence of NestedKey): the state entries stored as examples. Defaults to ``("observation",)``.
+
+    Examples:
+        >>> import torch
+        >>> from tensordict.nn import TensorDictModule
+        >>> from torchrl_reset import BatchedDualCollector
+        >>> from torchrl_reset_envs import BatchedTaskEnv
+        >>> env = BatchedTaskEnv("peg_insertion_insert", seeds=[0, 1])
+        >>> still = TensorDictModule(lambda obs: torch.zeros(*obs.shape[:-1], 3), in_keys=["observation"], out_keys=["action"])
+        >>> collector = BatchedDualCollector(env, still, still, max_forward_steps=4, min_reset_steps=1, total_frames=16)
+        >>> sum(batch.shape[0] for batch in collector)
+        16
+        >>> [m["successful_resets"] for m in collector.env_metrics()]
+        [1, 1]
+    """
+
+    FORWARD = FORWARD
+    RESET = RESET
+
+    def __init__(
+        self,
+        create_env_fn: EnvBase | Callable[[], EnvBase],
+        forward_policy: Callable[[TensorDictBase], TensorDictBase],
+        reset_policy: Callable[[TensorDictBase], TensorDictBase],
+        *,
+        max_forward_steps: int,
+        max_reset_steps: int | None = None,
+        min_reset_steps: int = 5,
+        total_frames: int = -1,
+        max_frames_per_env: int | None = None,
+        example_buffers: InitialStateBuffer | Sequence[InitialStateBuffer] | None = None,
+        shared_examples: bool = False,
+        example_keys: Sequence[NestedKey] = ("observation",),
+        reset_success_key: NestedKey = "reset_success",
+        trigger_key: NestedKey | None = None,
+        init_key: NestedKey = "is_init",
+        exploration_type: ExplorationType = ExplorationType.RANDOM,
+        max_events: int = 100_000,
+    ) -> None:
+        super().__init__()
+        self.max_forward_steps = check_int("max_forward_steps (H_f)", max_forward_steps)
+        self.max_reset_steps = check_int("max_reset_steps (H_r)", 2 * max_forward_steps if max_reset_steps is None else max_reset_steps)
+        self.min_reset_steps = check_int("min_reset_steps", min_reset_steps, minimum=0)
+        if self.min_reset_steps > self.max_reset_steps:
+            raise ValueError(f"min_reset_steps ({min_reset_steps}) exceeds max_reset_steps (H_r = {self.max_reset_steps}): "
+                             "no reset episode could ever succeed.")
+        if total_frames != -1 and not is_int_at_least(total_frames, 1):
+            raise ValueError(f"total_frames must be a positive integer or -1, got {total_frames!r}.")
+        self.total_frames = total_frames
+        self.max_frames_per_env = None if max_frames_per_env is None else check_int("max_frames_per_env", max_frames_per_env)
+        self.max_events = check_int("max_events", max_events)
+        env = create_env_fn if isinstance(create_env_fn, EnvBase) else create_env_fn()
+        if not isinstance(env, EnvBase):
+            raise TypeError(f"create_env_fn must be an EnvBase or return one, got {type(env).__name__}.")
+        if env.batch_dims != 1:
+            raise ValueError(f"BatchedDualCollector runs an env of batch size [N] (N copies of a task), got "
+                             f"{tuple(env.batch_size)}; for one unbatched env use DualCollector.")
+        for name, policy in (("forward_policy", forward_policy), ("reset_policy", reset_policy)):
+            if not callable(policy):
+                raise TypeError(f"{name} must be callable on a tensordict, got {type(policy).__name__}.")
+        self.env, self.num_envs = env, int(env.batch_size[0])
+        self.forward_policy, self.reset_policy = forward_policy, reset_policy
+        self.triggers = find_trigger_transforms(env)
+        if trigger_key is None:
+            keys = {t.trigger_key for t in self.triggers} or {"reset_trigger"}
+            if len(keys) > 1:
+                raise ValueError(f"the env's trigger transforms write different keys {keys}; pass trigger_key.")
+            trigger_key = keys.pop()
+        self.trigger_key, self.reset_success_key, self.init_key = trigger_key, reset_success_key, init_key
+        self.exploration_type = exploration_type
+        if example_buffers is None:
+            make = lambda: InitialStateBuffer(state_keys=example_keys)  # noqa: E731
+            example_buffers = make() if shared_examples else [make() for _ in range(self.num_envs)]
+        if isinstance(example_buffers, InitialStateBuffer):
+            self.shared_examples, self.example_buffers = True, [example_buffers]
+        else:
+            self.shared_examples, self.example_buffers = False, list(example_buffers)
+            if len(self.example_buffers) != self.num_envs:
+                raise ValueError(f"example_buffers holds {len(self.example_buffers)} buffers for {self.num_envs} copies: "
+                                 "pass one buffer (shared) or one per copy.")
+        self._state_owner = _state_owner(env)
+        n = self.num_envs
+        self.counters = {name: np.zeros(n, dtype=np.int64) for name in COUNTERS}
+        self._phase = np.full(n, FORWARD, dtype=np.int64)
+        self._phase_steps = np.zeros(n, dtype=np.int64)
+        self._traj_ids = np.zeros(n, dtype=np.int64)
+        self._next_traj_id = 0
+        self._restart = np.zeros(n, dtype=bool)
+        self._events: list[dict] = []
+        self._td: TensorDictBase | None = None
+        self._frames = 0
+
+    # ----------------------------------------------------------------- metrics
+    @property
+    def frames(self) -> int:
+        """Executed steps of all copies together."""
+        return self._frames
+
+    @property
+    def frames_per_env(self) -> np.ndarray:
+        return self.counters["forward_steps"] + self.counters["reset_steps"]
+
+    @property
+    def phases(self) -> list[str]:
+        """Each copy's phase for its next step."""
+        return [PHASE_NAMES[int(p)] for p in self._phase]
+
+    @staticmethod
+    def _with_rates(counters: dict[str, int]) -> dict[str, float]:
+        total = counters["forward_steps"] + counters["reset_steps"]
+        finished = counters["successful_resets"] + counters["manual_resets"]
+        return {**counters, "forward_share": counters["forward_steps"] / total if total else float("nan"),
+                "reset_success_rate": counters["successful_resets"] / finished if finished else float("nan")}
+
+    def env_metrics(self) -> list[dict[str, float]]:
+        """Each copy's counters, forward share and reset success rate (a run's metrics)."""
+        return [self._with_rates({k: int(v[i]) for k, v in self.counters.items()}) for i in range(self.num_envs)]
+
+    def metrics(self) -> dict[str, float]:
+        """The copies' counters summed, with the forward share and reset success rate of the sums."""
+        return self._with_rates({k: int(v.sum()) for k, v in self.counters.items()})
+
+    def pop_events(self) -> list[dict]:
+        """As :meth:`DualCollector.pop_events`, each record with its copy under ``env``."""
+        events, self._events = self._events, []
+        return events
+
+    # --------------------------------------------------------------- the loop
+    def _record(self, i: int, outcome: str, state: TensorDictBase) -> None:
+        if len(self._events) < self.max_events:
+            keys = self.example_buffers[0].state_keys
+            self._events.append({"env": i, "phase": PHASE_NAMES[int(self._phase[i])], "outcome": outcome,
+                                 "steps": int(self._phase_steps[i]), "frame": int(self.frames_per_env[i]),
+                                 "state": state.select(*keys).clone()})
+
+    def _begin(self, rows: np.ndarray, phase: int, root: TensorDictBase) -> None:
+        """Copies ``rows`` (indices) start an episode of ``phase`` from their state in ``root``; a forward
+        episode first saves that state as an example (Algorithm 1, line 6)."""
+        if not len(rows):
+            return
+        self._phase[rows], self._phase_steps[rows] = phase, 0
+        self._traj_ids[rows] = self._next_traj_id + 1 + np.arange(len(rows))
+        self._next_traj_id += len(rows)
+        self._restart[rows] = True
+        if phase == FORWARD:
+            states = root[torch.as_tensor(rows)]
+            if self.shared_examples:
+                self.example_buffers[0].add(states)
+            else:
+                for j, i in enumerate(rows):
+                    self.example_buffers[i].add(states[j])
+
+    def _clear_flags(self, root: TensorDictBase) -> TensorDictBase:
+        for key in {*self.env.done_keys, "truncated"}:
+            value = root.get(key, None)
+            if value is not None:
+                root.set(key, torch.zeros_like(value))
+        return root
+
+    def _start(self) -> None:
+        self._td = self._clear_flags(self.env.reset())
+        self._begin(np.arange(self.num_envs), FORWARD, self._td)
+
+    def _act(self, td: TensorDictBase, forward: np.ndarray, reset: np.ndarray) -> TensorDictBase:
+        """Each policy on the whole batch, its outputs kept on its own rows (lines 8 and 20)."""
+        outputs = []
+        with torch.no_grad(), set_exploration_type(self.exploration_type):
+            if forward.any():
+                outputs.append((forward, self.forward_policy(td.clone(False))))
+            if reset.any():
+                outputs.append((reset, self.reset_policy(td.clone(False))))
+        for rows, out in outputs:
+            for key in out.keys(True, True):
+                value, before = out.get(key), td.get(key, None)
+                if value is before:
+                    continue
+                td.set(key, value if before is None or len(outputs) == 1 and rows.all()
+                       else torch.where(_rows_mask(rows, value), value, before))
+        return td
+
+    def _iterate(self) -> TensorDictBase | None:
+        """One action in every active copy; returns the executed steps (or None when none executed)."""
+        td, n = self._td, self.num_envs
+        active = np.ones(n, dtype=bool) if self.max_frames_per_env is None else self.frames_per_env < self.max_frames_per_env
+        forward, reset = active & (self._phase == FORWARD), active & (self._phase == RESET)
+        at_horizon = forward & (self._phase_steps >= self.max_forward_steps)
+        held = at_horizon | ~active  # scored (at H_f) or idle, never executed
+        td.set(self.init_key, torch.from_numpy(self._phase_steps == 0).reshape(n, 1).to(td.device))
+        for trigger in self.triggers:
+            trigger.set_enabled(torch.from_numpy(forward), restart=torch.from_numpy(self._restart))
+        self._restart[:] = False
+        td = self._act(td, forward, reset)
+        if held.all():  # nothing to execute: score the horizon rows' actions (no env step)
+            stepped = td.clone(False)
+            stepped.set("next", self._skip_next(td))
+            fired = np.zeros(n, dtype=bool)
+            for trigger in self.triggers:
+                if trigger.enabled:
+                    fired |= trigger.score_step(td.clone(False)).reshape(n).cpu().numpy()
+        else:
+            if held.any():
+                td.set("_step", torch.from_numpy(~held).to(td.device))
+            stepped = self.env.step(td)
+            td.pop("_step", None)
+            flag = stepped.get(("next", self.trigger_key), None)
+            fired = np.zeros(n, dtype=bool) if flag is None else flag.reshape(n).cpu().numpy() & forward
+        executed = ~held & ~fired
+        nxt = stepped.get("next")
+        root = step_mdp(stepped, exclude_action=True, exclude_reward=True, exclude_done=False, keep_other=True)
+        terminated = nxt.get("terminated", None)
+        terminated = np.zeros(n, dtype=bool) if terminated is None else terminated.reshape(n).cpu().numpy()
+
+        # book the executed steps (lines 14-16 and 23)
+        self._phase_steps[executed] += 1
+        self.counters["forward_steps"] += executed & forward
+        self.counters["reset_steps"] += executed & reset
+        self._frames += int(executed.sum())
+        success_flag = nxt.get(self.reset_success_key, None)
+        if success_flag is None:
+            raise KeyError(f"the env's step output has no {self.reset_success_key!r} entry (the at-initial-state check); "
+                           f"pass reset_success_key=... to BatchedDualCollector.")
+        at_initial = success_flag.reshape(n).cpu().numpy()
+        ends = np.zeros(n, dtype=bool)  # executed steps that end their episode (done and truncated set)
+        fwd_exec, rst_exec = executed & forward, executed & reset
+        fwd_term = fwd_exec & terminated
+        fwd_last = fwd_exec & ~terminated & (self._phase_steps >= self.max_forward_steps)
+        success = rst_exec & at_initial & (self._phase_steps >= self.min_reset_steps)
+        rst_term = rst_exec & ~success & terminated
+        manual = rst_exec & ~success & ~terminated & (self._phase_steps >= self.max_reset_steps)
+        ends |= fwd_term | fwd_last | success | rst_term | manual
+        batch = None
+        if executed.any():
+            rows = torch.from_numpy(np.flatnonzero(executed))
+            batch = stepped[rows].exclude(*[k for k in stepped.keys() if isinstance(k, str) and k.startswith("_")])
+            if batch.get(("next", "truncated"), None) is None:
+                batch.set(("next", "truncated"), torch.zeros_like(batch.get(("next", "done"))))
+            end_rows = torch.from_numpy(ends[executed]).reshape(-1, 1).to(batch.device)
+            for key in ("truncated", "done"):
+                value = batch.get(("next", key))
+                batch.set(("next", key), value | end_rows.reshape(value.shape))
+            batch.set(("collector", "phase"), torch.from_numpy(self._phase[executed]).to(batch.device))
+            batch.set(("collector", "env_ids"), rows.to(batch.device))
+            batch.set(("collector", "traj_ids"), torch.from_numpy(self._traj_ids[executed]).to(batch.device))
+
+        # the episodes that end (lines 10-13, 17-19, 24-25); triggered rows keep their state
+        triggered = fired & ~at_horizon
+        for i in np.flatnonzero(triggered | at_horizon):
+            outcome = "triggered" if fired[i] else "requested"
+            self.counters[f"{outcome}_resets"][i] += 1
+            self.counters["forward_episodes"][i] += 1
+            self._record(i, outcome, root[int(i)])
+        for i in np.flatnonzero(fwd_term):
+            self.counters["forward_episodes"][i] += 1
+            self.counters["terminations"][i] += 1
+            self._record(i, "terminated", nxt[int(i)])
+        for i in np.flatnonzero(success | rst_term | manual):
+            self.counters["reset_episodes"][i] += 1
+            outcome = "success" if success[i] else "terminated" if rst_term[i] else "manual"
+            self.counters["successful_resets" if success[i] else "terminations" if rst_term[i] else "manual_resets"][i] += 1
+            self._record(i, outcome, nxt[int(i)])
+        hard = fwd_term | rst_term | manual
+        root = self._clear_flags(root)
+        if hard.any():  # a manual reset of those copies only (env.reset with "_reset")
+            mask = torch.from_numpy(hard).reshape(n, 1).to(root.device)
+            fresh = self.env.reset(TensorDict({"_reset": mask}, batch_size=self.env.batch_size, device=root.device))
+            rows = torch.from_numpy(np.flatnonzero(hard))
+            for key in fresh.keys(True, True):
+                target = root.get(key, None)
+                if target is not None and not (isinstance(key, str) and key.startswith("_")):
+                    target[rows] = fresh.get(key)[rows].to(target.dtype)
+            root = self._clear_flags(root)
+        self._begin(np.flatnonzero(triggered | at_horizon), RESET, root)
+        self._begin(np.flatnonzero(success | hard), FORWARD, root)
+        self._td = root
+        return batch
+
+    def _skip_next(self, td: TensorDictBase) -> TensorDictBase:
+        """The next tensordict of a step that executes nothing: every state entry as it was."""
+        spec_keys = set(self.env.full_observation_spec.keys(True, True)) | set(self.env.full_done_spec.keys(True, True))
+        nxt = td.select(*[k for k in spec_keys if td.get(k, None) is not None]).clone()
+        nxt.set("reward", torch.zeros(self.num_envs, 1, device=td.device))
+        return nxt
+
+    def _finished(self) -> bool:
+        if self.total_frames >= 0 and self._frames >= self.total_frames:
+            return True
+        return self.max_frames_per_env is not None and bool((self.frames_per_env >= self.max_frames_per_env).all())
+
+    def __len__(self) -> int:
+        raise TypeError("a BatchedDualCollector yields one batch per iteration with at least one executed step: "
+                        "its number of batches is not known in advance.")
+
+    def iterator(self) -> Iterator[TensorDictBase]:
+        if self._td is None:
+            self._start()
+        while not self._finished():
+            batch = self._iterate()
+            if batch is not None:
+                yield batch
+
+    # --------------------------------------------------------- state / seeding
+    def set_seed(self, seed: int, static_seed: bool = False) -> int:
+        torch.manual_seed(seed)
+        return self.env.set_seed(seed, static_seed=static_seed)
+
+    def state_dict(self) -> OrderedDict:
+        """Everything needed to continue identically (as :meth:`DualCollector.state_dict`, per copy)."""
+        return OrderedDict(
+            counters={k: v.copy() for k, v in self.counters.items()},
+            phase=self._phase.copy(), phase_steps=self._phase_steps.copy(), traj_ids=self._traj_ids.copy(),
+            next_traj_id=self._next_traj_id, restart=self._restart.copy(), frames=self._frames,
+            td=None if self._td is None else self._td.to_dict(),
+            env_state=None if self._state_owner is None or self._td is None else self._state_owner.get_simulator_state(),
+            example_buffers=[b.state_dict() for b in self.example_buffers],
+            trigger_state=[(t._smoothed, t.enabled_rows) for t in self.triggers],
+            events=[{**e, "state": e["state"].to_dict()} for e in self._events],
+            rng_state=torch.get_rng_state(),
+        )
+
+    def load_state_dict(self, state_dict: OrderedDict) -> None:
+        missing = {"counters", "phase", "phase_steps", "traj_ids", "frames", "td", "example_buffers"} - set(state_dict)
+        if missing:
+            raise KeyError(f"not a BatchedDualCollector state_dict: missing {sorted(missing)}.")
+        if len(state_dict["phase"]) != self.num_envs:
+            raise ValueError(f"the state holds {len(state_dict['phase'])} copies; this collector runs {self.num_envs}.")
+        if state_dict["td"] is not None and (state_dict.get("env_state") is None or self._state_owner is None):
+            raise ValueError("the saved state has no simulator state to restore (or this env cannot restore one): "
+                             "a batch resumes exactly or not at all.")
+        self.counters = {k: np.array(v, dtype=np.int64) for k, v in state_dict["counters"].items()}
+        self._phase, self._phase_steps = np.array(state_dict["phase"]), np.array(state_dict["phase_steps"])
+        self._traj_ids, self._next_traj_id = np.array(state_dict["traj_ids"]), int(state_dict["next_traj_id"])
+        self._restart, self._frames = np.array(state_dict["restart"]), int(state_dict["frames"])
+        for buffer, saved in zip(self.example_buffers, state_dict["example_buffers"]):
+            buffer.load_state_dict(saved)
+        for trigger, (smoothed, rows) in zip(self.triggers, state_dict.get("trigger_state", [])):
+            trigger.set_enabled(True if rows is None else rows)
+            trigger._smoothed = smoothed
+        self._events = [{**e, "state": TensorDict.from_dict(e["state"])} for e in state_dict.get("events", [])]
+        torch.set_rng_state(state_dict["rng_state"])
+        if state_dict["td"] is None:
+            self._td = None
+            return
+        self._state_owner.set_simulator_state(state_dict["env_state"])
+        self._td = TensorDict.from_dict(state_dict["td"], batch_size=self.env.batch_size)
+
+    def shutdown(self, timeout: float | None = None, close_env: bool = True, raise_on_error: bool = True) -> None:
+        if close_env and not self.env.is_closed:
+            self.env.close(raise_if_closed=False)
+
+    def update_policy_weights_(self, *args, **kwargs) -> None:
+        """The policies are used in place: trained parameters are seen at the next step."""
+
+    def __repr__(self) -> str:
+        return (f"{type(self).__name__}(env={type(self.env).__name__}, N={self.num_envs}, H_f={self.max_forward_steps}, "
+                f"H_r={self.max_reset_steps}, frames={self._frames}, phases={self.phases})")
