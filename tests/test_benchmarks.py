@@ -10,6 +10,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
 sys.path.insert(0, str(ROOT / "recipes"))
 
+import bench_acting  # noqa: E402
 import bench_loop  # noqa: E402
 import bench_runs  # noqa: E402
 import bench_updates  # noqa: E402
@@ -111,6 +112,16 @@ def test_runs_benchmark_command_gives_the_batch_against_separate_processes(tmp_p
     assert "two processes (2 + 1)" in text and "hidden_sizes=[16,16]" in text and "Table 1 grid" in text
     assert report["projected_table1_grid"]["hours"] == pytest.approx(
         90 * 1_500_000 / report["projected_table1_grid"]["run_steps_per_second"] / 3600)
+
+
+def test_acting_benchmark_command_times_both_collectors_on_the_same_steps(tmp_path):
+    report = bench_acting.main(["--runs", "1", "2", "--steps", "30", "--warm-up", "5", "--out", str(tmp_path)])
+    assert sorted(p.suffix for p in tmp_path.iterdir()) == [".json", ".md"]
+    assert [r["runs"] for r in report["rows"]] == [1, 2]
+    for row in report["rows"]:
+        assert row["separate_ms_per_run_step"] > 0 and row["batched_ms_per_run_step"] > 0
+        assert row["speedup"] == pytest.approx(row["separate_ms_per_run_step"] / row["batched_ms_per_run_step"])
+    assert "| 2 |" in next(tmp_path.glob("*.md")).read_text()
 
 
 @pytest.mark.skipif(torch.cuda.is_available(), reason="checks the message of a machine without CUDA")

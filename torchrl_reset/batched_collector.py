@@ -86,7 +86,7 @@ class BatchedDualCollector(BaseCollector):
         >>> from torchrl_reset import BatchedDualCollector
         >>> from torchrl_reset_envs import BatchedTaskEnv
         >>> env = BatchedTaskEnv("peg_insertion_insert", seeds=[0, 1])
-        >>> still = TensorDictModule(lambda obs: torch.zeros(*obs.shape[:-1], 3), in_keys=["observation"], out_keys=["action"])
+        >>> still = TensorDictModule(lambda obs: torch.zeros(*obs.shape[:-1], 7), in_keys=["observation"], out_keys=["action"])
         >>> collector = BatchedDualCollector(env, still, still, max_forward_steps=4, min_reset_steps=1, total_frames=16)
         >>> sum(batch.shape[0] for batch in collector)
         16
