@@ -14,7 +14,7 @@ from torchrl.objectives import SoftUpdate
 
 from torchrl_reset import ResetTriggerTransform, accel
 
-__all__ = ["speed_components", "make_actor", "with_exploration", "make_adam", "Agent", "make_forward_agent", "make_reset_agent", "make_trigger", "lnt_batch"]
+__all__ = ["speed_components", "make_actor", "with_exploration", "make_adam", "Agent", "make_forward_agent", "make_reset_agent", "make_trigger", "lnt_batch", "reset_tau"]
 
 
 def speed_components(cfg: DictConfig) -> accel.Components:
@@ -123,8 +123,13 @@ def make_reset_agent(cfg: DictConfig, obs_dim: int, action_spec) -> Agent:
             {"params": list(loss.actor_network_params.values(True, True)), "lr": cfg.reset.actor_lr},
             {"params": list(loss.value_network_params.values(True, True)), "lr": cfg.reset.critic_lr},
         ])
+    return Agent(actor, loss, optimizer, parts.soft_update(loss, tau=reset_tau(cfg)), model)
+
+
+def reset_tau(cfg: DictConfig) -> float:
+    """The reset agent's target rate: ``reset.tau`` where set, else the shared ``tau``."""
     tau = OmegaConf.select(cfg, "reset.tau", default=None)
-    return Agent(actor, loss, optimizer, parts.soft_update(loss, tau=cfg.tau if tau is None else float(tau)), model)
+    return float(cfg.tau if tau is None else tau)
 
 
 def make_trigger(cfg: DictConfig, reset_agent: Agent) -> ResetTriggerTransform:

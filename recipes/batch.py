@@ -24,6 +24,7 @@ import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf
 
+from agents import reset_tau
 from config_checks import ConfigError, validate
 from learner import NonFiniteLoss
 from run_files import run_folder_lock, stop_on_sigterm
@@ -185,13 +186,12 @@ class BatchedUpdates:
         self.runs = runs
         self.forward = RunDDPGUpdate([r.forward.loss for r in runs], [r.forward.optimizer for r in runs],
                                      gamma=float(cfg.gamma), tau=float(cfg.tau))
-        reset_tau = OmegaConf.select(cfg, "reset.tau", default=None)
-        reset_tau = float(cfg.tau if reset_tau is None else reset_tau)
+        tau = reset_tau(cfg)
         if cfg.algo.name == "ours":
-            self.reset = RunRCEUpdate([r.reset.loss for r in runs], [r.reset.optimizer for r in runs], tau=reset_tau)
+            self.reset = RunRCEUpdate([r.reset.loss for r in runs], [r.reset.optimizer for r in runs], tau=tau)
         else:
             self.reset = RunDDPGUpdate([r.reset.loss for r in runs], [r.reset.optimizer for r in runs],
-                                       gamma=float(cfg.gamma), tau=reset_tau, reward_key="lnt_reward")
+                                       gamma=float(cfg.gamma), tau=tau, reward_key="lnt_reward")
         self.precision = runs[0].matmul_precision
         self.seconds = 0.0  # spent in update calls (read by the loop's timing)
         for s, run in enumerate(runs):  # a checkpoint holds the run's own optimizer state, as a run alone's
