@@ -12,8 +12,8 @@ from torchrl.collectors import BaseCollector
 from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type, step_mdp
 
-from ._validation import check_int, is_int_at_least
-from .collector import COUNTERS, FORWARD, PHASE_NAMES, RESET, _state_owner, find_trigger_transforms
+from ._validation import check_int
+from .collector import COUNTERS, FORWARD, PHASE_NAMES, RESET, _state_owner, set_up_loop
 from .example_buffer import InitialStateBuffer
 
 __all__ = ["BatchedDualCollector", "split_phases"]
@@ -118,36 +118,15 @@ class BatchedDualCollector(BaseCollector):
         max_events: int = 100_000,
     ) -> None:
         super().__init__()
-        self.max_forward_steps = check_int("max_forward_steps (H_f)", max_forward_steps)
-        self.max_reset_steps = check_int("max_reset_steps (H_r)", 2 * max_forward_steps if max_reset_steps is None else max_reset_steps)
-        self.min_reset_steps = check_int("min_reset_steps", min_reset_steps, minimum=0)
-        if self.min_reset_steps > self.max_reset_steps:
-            raise ValueError(f"min_reset_steps ({min_reset_steps}) exceeds max_reset_steps (H_r = {self.max_reset_steps}): "
-                             "no reset episode could ever succeed.")
-        if total_frames != -1 and not is_int_at_least(total_frames, 1):
-            raise ValueError(f"total_frames must be a positive integer or -1, got {total_frames!r}.")
-        self.total_frames = total_frames
-        self.max_frames_per_env = None if max_frames_per_env is None else check_int("max_frames_per_env", max_frames_per_env)
-        self.max_events = check_int("max_events", max_events)
-        env = create_env_fn if isinstance(create_env_fn, EnvBase) else create_env_fn()
-        if not isinstance(env, EnvBase):
-            raise TypeError(f"create_env_fn must be an EnvBase or return one, got {type(env).__name__}.")
+        env = set_up_loop(self, create_env_fn, forward_policy, reset_policy, max_forward_steps=max_forward_steps,
+                          max_reset_steps=max_reset_steps, min_reset_steps=min_reset_steps, total_frames=total_frames,
+                          max_events=max_events, trigger_key=trigger_key, reset_success_key=reset_success_key,
+                          init_key=init_key, exploration_type=exploration_type)
         if env.batch_dims != 1:
             raise ValueError(f"BatchedDualCollector runs an env of batch size [N] (N copies of a task), got "
                              f"{tuple(env.batch_size)}; for one unbatched env use DualCollector.")
-        for name, policy in (("forward_policy", forward_policy), ("reset_policy", reset_policy)):
-            if not callable(policy):
-                raise TypeError(f"{name} must be callable on a tensordict, got {type(policy).__name__}.")
-        self.env, self.num_envs = env, int(env.batch_size[0])
-        self.forward_policy, self.reset_policy = forward_policy, reset_policy
-        self.triggers = find_trigger_transforms(env)
-        if trigger_key is None:
-            keys = {t.trigger_key for t in self.triggers} or {"reset_trigger"}
-            if len(keys) > 1:
-                raise ValueError(f"the env's trigger transforms write different keys {keys}; pass trigger_key.")
-            trigger_key = keys.pop()
-        self.trigger_key, self.reset_success_key, self.init_key = trigger_key, reset_success_key, init_key
-        self.exploration_type = exploration_type
+        self.num_envs = int(env.batch_size[0])
+        self.max_frames_per_env = None if max_frames_per_env is None else check_int("max_frames_per_env", max_frames_per_env)
         if example_buffers is None:
             make = lambda: InitialStateBuffer(state_keys=example_keys)  # noqa: E731
             example_buffers = make() if shared_examples else [make() for _ in range(self.num_envs)]

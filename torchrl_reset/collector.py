@@ -53,6 +53,45 @@ def find_trigger_transforms(env: EnvBase) -> list[ResetTriggerTransform]:
     return found
 
 
+def set_up_loop(collector, create_env_fn, forward_policy, reset_policy, *, max_forward_steps, max_reset_steps,
+                min_reset_steps, total_frames, max_events, trigger_key, reset_success_key, init_key,
+                exploration_type) -> EnvBase:
+    """Checks and sets what every Algorithm 1 collector holds: H_f, H_r, the minimum reset length, the
+    frame budget, the env, both policies, the triggers and the keys. Returns the env."""
+    collector.max_forward_steps = check_int("max_forward_steps (H_f)", max_forward_steps)
+    if max_reset_steps is None:
+        max_reset_steps = 2 * max_forward_steps
+    collector.max_reset_steps = check_int("max_reset_steps (H_r)", max_reset_steps)
+    collector.min_reset_steps = check_int("min_reset_steps", min_reset_steps, minimum=0)
+    if collector.min_reset_steps > collector.max_reset_steps:
+        raise ValueError(
+            f"min_reset_steps ({min_reset_steps}) exceeds max_reset_steps (H_r = {max_reset_steps}): "
+            "no reset episode could ever succeed."
+        )
+    if total_frames != -1 and not is_int_at_least(total_frames, 1):
+        raise ValueError(f"total_frames must be a positive integer or -1, got {total_frames!r}.")
+    collector.total_frames = total_frames
+    collector.max_events = check_int("max_events", max_events)
+    env = create_env_fn if isinstance(create_env_fn, EnvBase) else create_env_fn()
+    if not isinstance(env, EnvBase):
+        raise TypeError(f"create_env_fn must be an EnvBase or return one, got {type(env).__name__}.")
+    for name, policy in (("forward_policy", forward_policy), ("reset_policy", reset_policy)):
+        if not callable(policy):
+            raise TypeError(f"{name} must be callable on a tensordict, got {type(policy).__name__}.")
+    collector.env, collector.forward_policy, collector.reset_policy = env, forward_policy, reset_policy
+    collector.triggers = find_trigger_transforms(env)
+    if trigger_key is None:
+        keys = {t.trigger_key for t in collector.triggers} or {"reset_trigger"}
+        if len(keys) > 1:
+            raise ValueError(f"the env's trigger transforms write different keys {keys}; pass trigger_key.")
+        trigger_key = keys.pop()
+    if reset_success_key is None:
+        raise ValueError("reset_success_key is required: the env's at-initial-state flag ends reset episodes.")
+    collector.trigger_key, collector.reset_success_key, collector.init_key = trigger_key, reset_success_key, init_key
+    collector.exploration_type = exploration_type
+    return env
+
+
 def _state_owner(env: EnvBase):
     """The innermost env (or wrapper) offering ``get_simulator_state`` / ``set_simulator_state``, if any."""
     while True:
@@ -153,47 +192,15 @@ class DualCollector(BaseCollector):
     ) -> None:
         super().__init__()
 
-        self.max_forward_steps = check_int("max_forward_steps (H_f)", max_forward_steps)
-        if max_reset_steps is None:
-            max_reset_steps = 2 * max_forward_steps
-        self.max_reset_steps = check_int("max_reset_steps (H_r)", max_reset_steps)
-        self.min_reset_steps = check_int("min_reset_steps", min_reset_steps, minimum=0)
-        if self.min_reset_steps > self.max_reset_steps:
-            raise ValueError(
-                f"min_reset_steps ({min_reset_steps}) exceeds max_reset_steps (H_r = {max_reset_steps}): "
-                "no reset episode could ever succeed."
-            )
         self.frames_per_batch = self.requested_frames_per_batch = check_int("frames_per_batch", frames_per_batch)
-        if total_frames != -1 and not is_int_at_least(total_frames, 1):
-            raise ValueError(f"total_frames must be a positive integer or -1, got {total_frames!r}.")
-        self.total_frames = total_frames
-        self.max_events = check_int("max_events", max_events)
-
-        env = create_env_fn if isinstance(create_env_fn, EnvBase) else create_env_fn()
-        if not isinstance(env, EnvBase):
-            raise TypeError(f"create_env_fn must be an EnvBase or return one, got {type(env).__name__}.")
+        env = set_up_loop(self, create_env_fn, forward_policy, reset_policy, max_forward_steps=max_forward_steps,
+                          max_reset_steps=max_reset_steps, min_reset_steps=min_reset_steps, total_frames=total_frames,
+                          max_events=max_events, trigger_key=trigger_key, reset_success_key=reset_success_key,
+                          init_key=init_key, exploration_type=exploration_type)
         if env.batch_size != torch.Size([]):
             raise ValueError(
                 f"DualCollector runs one unbatched environment (batch_size []), got batch_size {tuple(env.batch_size)}."
             )
-        for name, policy in (("forward_policy", forward_policy), ("reset_policy", reset_policy)):
-            if not callable(policy):
-                raise TypeError(f"{name} must be callable on a tensordict, got {type(policy).__name__}.")
-        self.env = env
-        self.forward_policy = forward_policy
-        self.reset_policy = reset_policy
-        self.triggers = find_trigger_transforms(env)
-        if trigger_key is None:
-            keys = {t.trigger_key for t in self.triggers} or {"reset_trigger"}
-            if len(keys) > 1:
-                raise ValueError(f"the env's trigger transforms write different keys {keys}; pass trigger_key.")
-            trigger_key = keys.pop()
-        self.trigger_key = trigger_key
-        if reset_success_key is None:
-            raise ValueError("reset_success_key is required: the env's at-initial-state flag ends reset episodes.")
-        self.reset_success_key = reset_success_key
-        self.init_key = init_key
-        self.exploration_type = exploration_type
         if example_buffer is None:
             example_buffer = InitialStateBuffer(state_keys=example_keys or ("observation",))
         elif example_keys is not None and list(example_keys) != example_buffer.state_keys:
