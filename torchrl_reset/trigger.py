@@ -247,7 +247,8 @@ class ResetTriggerTransform(Transform):
 
     def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase) -> TensorDictBase:
         partial = None if tensordict is None else tensordict.get("_reset", None)
-        if partial is not None and self._smoothed is not None and partial.numel() == self._smoothed.numel():
+        if (partial is not None and self._rows is not None and self._smoothed is not None
+                and partial.numel() == self._smoothed.numel()):
             # a partial reset of a batched env: only the rows reset restart their smoothing
             self._smoothed = torch.where(partial.reshape(self._smoothed.shape),
                                          torch.full_like(self._smoothed, float("nan")), self._smoothed)
