@@ -159,6 +159,19 @@ class BatchedTaskEnv(EnvBase):
             self._success[i, 0], self._reset_reward[i, 0] = row["reset_success"], row["reset_reward"]
             self._irrecoverable[i, 0] = row["irrecoverable_flag"]
 
+    def get_copy_state(self, i: int) -> dict[str, Any]:
+        """Copy ``i``'s simulator state as the single env (``make_env``) gives it."""
+        return self.envs[i].get_simulator_state()
+
+    def set_copy_state(self, i: int, state: dict[str, Any], outputs: dict[str, Any]) -> None:
+        """Restores copy ``i`` from a single env's simulator state and its last outputs (a root tensordict
+        of that env as a dict: ``observation``, ``reset_success``, ``reset_reward``, ``irrecoverable``)."""
+        self.envs[i].set_simulator_state(state)
+        self._obs[i] = np.asarray(outputs["observation"], dtype=self._obs.dtype).reshape(self._obs[i].shape)
+        for cache, key in ((self._success, "reset_success"), (self._reset_reward, "reset_reward"),
+                           (self._irrecoverable, "irrecoverable")):
+            cache[i, 0] = np.asarray(outputs[key]).reshape(-1)[0]
+
     def close(self, *, raise_if_closed: bool = True) -> None:
         for env in self.envs:
             env.close()

@@ -22,7 +22,8 @@ SEEDS = [0, 1, 2]
 HORIZONS = dict(max_forward_steps=20, max_reset_steps=15, min_reset_steps=3)
 FORWARD_GAIN = torch.tensor([[0.3], [0.6], [1.0]])  # copy i's forward policy scale
 RESET_GAIN = torch.tensor([[1.0], [2.5], [5.0]])  # copy i's reset controller gain (weak gains fail: manual resets)
-KEYS = ["observation", "action", ("next", "observation"), ("next", "done"), ("next", "truncated"), ("collector", "phase")]
+KEYS = ["observation", "action", ("next", "observation"), ("next", "done"), ("next", "truncated"), ("collector", "phase"),
+        ("collector", "traj_ids")]
 
 
 @pytest.fixture(scope="module")
@@ -49,22 +50,64 @@ def trigger(smoothing=0.0):
     return ResetTriggerTransform(model, 0.3, smoothing=smoothing)
 
 
-def single_runs(q0, steps, smoothing=0.0):
+class Noisy:
+    """A policy plus noise from each copy's own generator, drawn for the rows it acts for only (the
+    ``"_acting"`` mask; alone, its one row): each copy's forward and reset policies share one generator,
+    so a copy matches its single collector only if it draws in the single collector's order (the action
+    after H_f included)."""
+
+    def __init__(self, policy, generators):
+        self.policy, self.generators = policy, generators
+
+    def __call__(self, td):
+        td = self.policy(td)
+        action = td.get("action")
+        acting = td.get("_acting", None)
+        if acting is None:
+            noise = torch.randn(action.shape, generator=self.generators[0])
+        else:
+            noise = torch.zeros_like(action)
+            for i in acting.nonzero().flatten().tolist():
+                noise[i] = torch.randn(action.shape[-1], generator=self.generators[i])
+        td.set("action", (action + 0.2 * noise).clamp(-1, 1))
+        return td
+
+
+def generators(copies):
+    return [torch.Generator().manual_seed(100 + i) for i in copies]
+
+
+def single_collector(i, q0, steps, smoothing=0.0, noisy=False):
+    env = make_env(TASK, seed=SEEDS[i])
+    env.append_transform(trigger(smoothing))
+    fwd, rst = forward_policy(FORWARD_GAIN[i]), reset_policy(RESET_GAIN[i], q0)
+    if noisy:
+        gens = generators([i])
+        fwd, rst = Noisy(fwd, gens), Noisy(rst, gens)
+    return DualCollector(env, fwd, rst, total_frames=steps, **HORIZONS)
+
+
+def single_runs(q0, steps, smoothing=0.0, noisy=False):
     runs = []
-    for i, seed in enumerate(SEEDS):
-        env = make_env(TASK, seed=seed)
-        env.append_transform(trigger(smoothing))
-        collector = DualCollector(env, forward_policy(FORWARD_GAIN[i]), reset_policy(RESET_GAIN[i], q0),
-                                  total_frames=steps, **HORIZONS)
+    for i in range(len(SEEDS)):
+        collector = single_collector(i, q0, steps, smoothing, noisy)
         trace = torch.cat([batch.select(*KEYS).clone() for batch in collector])
         runs.append((collector, trace))
     return runs
 
 
-def batched(q0, steps, smoothing=0.0, **kwargs):
+def batched(q0, steps, smoothing=0.0, noisy=False, **kwargs):
     env = TransformedEnv(BatchedTaskEnv(TASK, seeds=SEEDS), trigger(smoothing))
-    return BatchedDualCollector(env, forward_policy(FORWARD_GAIN), reset_policy(RESET_GAIN, q0),
-                                max_frames_per_env=steps, **HORIZONS, **kwargs)
+    fwd, rst = forward_policy(FORWARD_GAIN), reset_policy(RESET_GAIN, q0)
+    if noisy:
+        gens = generators(range(len(SEEDS)))
+        fwd, rst = Noisy(fwd, gens), Noisy(rst, gens)
+    return BatchedDualCollector(env, fwd, rst, max_frames_per_env=steps, **HORIZONS, **kwargs)
+
+
+def events(collector):
+    return [(e["outcome"], e["phase"], e["steps"], e["frame"], e.get("scores"), e["state"]["observation"].tolist())
+            for e in collector.pop_events()]
 
 
 def per_copy(batches):
@@ -77,11 +120,11 @@ def per_copy(batches):
     return {i: torch.cat(r) for i, r in rows.items()}
 
 
-@pytest.mark.parametrize("smoothing", [0.0, 0.5])
-def test_each_copy_is_the_single_collector(start_joints, smoothing):
+@pytest.mark.parametrize("smoothing,noisy", [(0.0, False), (0.5, False), (0.0, True)])
+def test_each_copy_is_the_single_collector(start_joints, smoothing, noisy):
     steps = 600
-    singles = single_runs(start_joints, steps, smoothing)
-    collector = batched(start_joints, steps, smoothing)
+    singles = single_runs(start_joints, steps, smoothing, noisy)
+    collector = batched(start_joints, steps, smoothing, noisy)
     mixed = 0
     batches = []
     for batch in collector:
@@ -94,6 +137,9 @@ def test_each_copy_is_the_single_collector(start_joints, smoothing):
         for key in KEYS:
             assert torch.equal(traces[i].get(key), trace.get(key)), (i, key)
         assert torch.equal(collector.example_buffers[i].states()["observation"], alone.example_buffer.states()["observation"])
+        copy = collector.copy(i)
+        assert copy.counters == alone.counters and copy.frames == alone.frames
+        assert events(copy) == events(alone)  # outcomes, steps, frames, the stopped actions' scores, states
     total = collector.metrics()
     outcomes = ("triggered_resets", "successful_resets") if smoothing else (
         "triggered_resets", "requested_resets", "successful_resets", "manual_resets")
@@ -146,6 +192,42 @@ def test_resume_continues_exactly(start_joints):
         for key in KEYS:
             assert torch.equal(whole[i].get(key), again[i].get(key))
     assert resumed.env_metrics() == batched_metrics(start_joints, 400)
+
+
+@pytest.mark.parametrize("smoothing", [0.0, 0.5])
+def test_a_copy_continues_a_single_collector_and_the_other_way_round(start_joints, smoothing):
+    """A copy's state is a single collector's state_dict (and back): a run saved alone continues in a
+    batch, a run saved in a batch continues alone, each exactly as the uninterrupted single run."""
+    steps, cut = 400, 170
+    whole = single_runs(start_joints, steps, smoothing, noisy=True)
+    heads, states = [], []
+    for i in range(len(SEEDS)):
+        alone = single_collector(i, start_joints, steps, smoothing, noisy=True)
+        it = iter(alone)
+        heads.append(torch.cat([next(it).select(*KEYS).clone() for _ in range(cut)]))
+        states.append((alone.state_dict(), alone.forward_policy.generators[0].get_state()))
+    collector = batched(start_joints, steps, smoothing, noisy=True)
+    for i, (state, gen) in enumerate(states):
+        collector.copy(i).load_state_dict(state)
+        collector.forward_policy.generators[i].set_state(gen)
+    assert collector.copy(1).frames == cut and collector.frames == cut * len(SEEDS)
+    it = iter(collector)
+    middle = per_copy([next(it) for _ in range(60)])
+    back = []
+    for i in range(len(SEEDS)):  # and back: each copy's state continues in a single collector
+        alone = single_collector(i, start_joints, steps, smoothing, noisy=True)
+        alone.load_state_dict(collector.copy(i).state_dict())
+        alone.forward_policy.generators[0].set_state(collector.forward_policy.generators[i].get_state())
+        back.append(torch.cat([batch.select(*KEYS).clone() for batch in alone]))
+        assert alone.counters == whole[i][0].counters
+    for i, (_, trace) in enumerate(whole):
+        again = torch.cat([heads[i], middle[i], back[i]])
+        for key in KEYS:
+            assert torch.equal(again.get(key), trace.get(key)), (i, key)
+    with pytest.raises(RuntimeError, match="before the batch's first iteration"):
+        collector.copy(0).load_state_dict(states[0][0])
+    with pytest.raises(ValueError, match="shared"):
+        batched(start_joints, 10, shared_examples=True).copy(0)
 
 
 def batched_metrics(q0, steps):

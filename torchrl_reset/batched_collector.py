@@ -16,7 +16,7 @@ from ._validation import check_int
 from .collector import COUNTERS, FORWARD, PHASE_NAMES, RESET, _state_owner, set_up_loop
 from .example_buffer import InitialStateBuffer
 
-__all__ = ["BatchedDualCollector", "split_phases"]
+__all__ = ["BatchedDualCollector", "CollectorCopy", "split_phases"]
 
 
 def split_phases(batch: TensorDictBase) -> dict[str, TensorDictBase]:
@@ -29,6 +29,15 @@ def split_phases(batch: TensorDictBase) -> dict[str, TensorDictBase]:
         if rows.numel():
             out[name] = batch[rows]
     return out
+
+
+def _per_copy_budget(budget, n: int) -> np.ndarray | None:
+    if budget is None:
+        return None
+    values = [budget] * n if isinstance(budget, int) and not isinstance(budget, bool) else list(budget)
+    if len(values) != n:
+        raise ValueError(f"max_frames_per_env gives {len(values)} budgets for {n} copies.")
+    return np.array([check_int("max_frames_per_env", v) for v in values], dtype=np.int64)
 
 
 def _rows_mask(mask: np.ndarray, like: torch.Tensor) -> torch.Tensor:
@@ -47,12 +56,21 @@ class BatchedDualCollector(BaseCollector):
     kept on its own rows), and one ``env.step`` steps them all. A copy whose action the trigger
     stops is not stepped while the others are (torchrl's partial steps: the env must honour
     ``"_step"``, as :class:`~torchrl_reset_envs.BatchedTaskEnv` and ``SerialEnv`` do); a manual reset
-    resets that copy only (``"_reset"``). After a copy's H_f-th step, its next action is scored
-    at the next iteration and not executed (Algorithm 1's order: trigger first, then the horizon).
+    resets that copy only (``"_reset"``). After a copy's H_f-th step its next action is drawn and
+    scored in the same iteration, and not executed (Algorithm 1's order: trigger first, then the
+    horizon), as :class:`~torchrl_reset.DualCollector` does: each copy draws its random numbers in
+    the order a single collector draws them. Each policy's input carries ``"_acting"``, the boolean
+    mask ``[N]`` of the rows it acts for (the other rows' outputs are discarded), so that a policy
+    may draw noise for its own rows only.
 
     Each iteration yields the steps it executed, batch ``[M]`` (M <= N), each row tagged with
     ``("collector", "phase")``, ``("collector", "env_ids")`` (its copy) and ``("collector", "traj_ids")``
-    (unique over all copies): :func:`split_phases` sorts them for the two agents' buffers.
+    (for independent runs counted per copy, as each copy's own :class:`~torchrl_reset.DualCollector`
+    counts them; with a shared example buffer unique over all copies): :func:`split_phases` sorts
+    them for the two agents' buffers. :meth:`copy` gives one copy's view with a single collector's
+    interface (counters, frames, example buffer, events, and its state in
+    :class:`~torchrl_reset.DualCollector`'s ``state_dict`` format), for the code that keeps one run's
+    records and checkpoints.
 
     The same collector serves both uses, by configuration:
 
@@ -74,8 +92,9 @@ class BatchedDualCollector(BaseCollector):
         max_forward_steps, max_reset_steps, min_reset_steps, reset_success_key, trigger_key, init_key,
         exploration_type, max_events: as :class:`~torchrl_reset.DualCollector`.
         total_frames (int): executed steps of all copies together after which iteration stops; -1 (default) never.
-        max_frames_per_env (int, optional): a copy that executed this many steps stops (its rows are
-            neither stepped nor scored); iteration ends when every copy stopped.
+        max_frames_per_env (int or sequence of int, optional): a copy that executed this many steps (its
+            own budget, when one per copy is given) stops: its row is neither stepped nor scored;
+            iteration ends when every copy stopped.
         example_buffers (InitialStateBuffer or sequence of them, optional): one shared buffer, or one per copy.
         shared_examples (bool): when no buffers are given, one shared buffer (True) or one per copy (False, default).
         example_keys (sequence of NestedKey): the state entries stored as examples. Defaults to ``("observation",)``.
@@ -126,7 +145,7 @@ class BatchedDualCollector(BaseCollector):
             raise ValueError(f"BatchedDualCollector runs an env of batch size [N] (N copies of a task), got "
                              f"{tuple(env.batch_size)}; for one unbatched env use DualCollector.")
         self.num_envs = int(env.batch_size[0])
-        self.max_frames_per_env = None if max_frames_per_env is None else check_int("max_frames_per_env", max_frames_per_env)
+        self.max_frames_per_env = _per_copy_budget(max_frames_per_env, int(env.batch_size[0]))
         if example_buffers is None:
             make = lambda: InitialStateBuffer(state_keys=example_keys)  # noqa: E731
             example_buffers = make() if shared_examples else [make() for _ in range(self.num_envs)]
@@ -146,6 +165,7 @@ class BatchedDualCollector(BaseCollector):
         self._next_traj_id = 0
         self._restart = np.zeros(n, dtype=bool)
         self._events: list[dict] = []
+        self._pending: dict[int, tuple[dict, list]] = {}  # copies' saved states, restored at the first iteration
         self._td: TensorDictBase | None = None
         self._frames = 0
 
@@ -185,12 +205,16 @@ class BatchedDualCollector(BaseCollector):
         return events
 
     # --------------------------------------------------------------- the loop
-    def _record(self, i: int, outcome: str, state: TensorDictBase) -> None:
+    def _record(self, i: int, outcome: str, state: TensorDictBase, scored: TensorDictBase | None = None) -> None:
         if len(self._events) < self.max_events:
             keys = self.example_buffers[0].state_keys
-            self._events.append({"env": i, "phase": PHASE_NAMES[int(self._phase[i])], "outcome": outcome,
-                                 "steps": int(self._phase_steps[i]), "frame": int(self.frames_per_env[i]),
-                                 "state": state.select(*keys).clone()})
+            event = {"env": i, "phase": PHASE_NAMES[int(self._phase[i])], "outcome": outcome,
+                     "steps": int(self._phase_steps[i]), "frame": int(self.frames_per_env[i]),
+                     "state": state.select(*keys).clone()}
+            if scored is not None and self.triggers:  # the triggers' scores of the action they stopped
+                event["scores"] = [float(scored.get(t.score_key).reshape(-1)[0]) for t in self.triggers
+                                   if scored.get(t.score_key, None) is not None]
+            self._events.append(event)
 
     def _begin(self, rows: np.ndarray, phase: int, root: TensorDictBase) -> None:
         """Copies ``rows`` (indices) start an episode of ``phase`` from their state in ``root``; a forward
@@ -198,8 +222,11 @@ class BatchedDualCollector(BaseCollector):
         if not len(rows):
             return
         self._phase[rows], self._phase_steps[rows] = phase, 0
-        self._traj_ids[rows] = self._next_traj_id + 1 + np.arange(len(rows))
-        self._next_traj_id += len(rows)
+        if self.shared_examples:  # one buffer: episode ids unique over the copies
+            self._traj_ids[rows] = self._next_traj_id + 1 + np.arange(len(rows))
+            self._next_traj_id += len(rows)
+        else:  # a run per copy: each copy counts its episodes as its single collector does
+            self._traj_ids[rows] += 1
         self._restart[rows] = True
         if phase == FORWARD:
             states = root[torch.as_tensor(rows)]
@@ -217,19 +244,42 @@ class BatchedDualCollector(BaseCollector):
         return root
 
     def _start(self) -> None:
-        self._td = self._clear_flags(self.env.reset())
-        self._begin(np.arange(self.num_envs), FORWARD, self._td)
+        """The first ``env.reset()``; the copies given a saved state (:meth:`copy`) continue from it."""
+        root = self._clear_flags(self.env.reset())
+        fresh = np.ones(self.num_envs, dtype=bool)
+        for i, (state, smoothing) in sorted(self._pending.items()):
+            self._state_owner.set_copy_state(i, state["env_state"], state["td"])
+            row = TensorDict.from_dict(state["td"], batch_size=[])
+            for key in row.keys(True, True):
+                target = root.get(key, None)
+                value = row.get(key)
+                if target is None:  # an entry the first reset has not written yet (the exploration's state)
+                    target = torch.zeros((self.num_envs, *value.shape), dtype=value.dtype, device=root.device)
+                    root.set(key, target)
+                target[i] = value.to(target.device)
+            for trigger, smoothed in zip(self.triggers, smoothing):
+                trigger.restore_row(i, smoothed, self.num_envs)
+            fresh[i] = False
+        self._pending = {}
+        self._td = root
+        self._begin(np.flatnonzero(fresh), FORWARD, root)
+
+    def _mask(self, rows: np.ndarray) -> torch.Tensor:
+        return torch.from_numpy(rows.copy()).to(self._td.device)
 
     def _act(self, td: TensorDictBase, forward: np.ndarray, reset: np.ndarray) -> TensorDictBase:
         """Each policy on the whole batch, its outputs kept on its own rows (lines 8 and 20)."""
         outputs = []
         with torch.no_grad(), set_exploration_type(self.exploration_type):
-            if forward.any():
-                outputs.append((forward, self.forward_policy(td.clone(False))))
-            if reset.any():
-                outputs.append((reset, self.reset_policy(td.clone(False))))
+            for rows, policy in ((forward, self.forward_policy), (reset, self.reset_policy)):
+                if rows.any():
+                    inputs = td.clone(False)
+                    inputs.set("_acting", self._mask(rows))
+                    outputs.append((rows, policy(inputs)))
         for rows, out in outputs:
             for key in out.keys(True, True):
+                if key == "_acting":
+                    continue
                 value, before = out.get(key), td.get(key, None)
                 if value is before:
                     continue
@@ -237,33 +287,38 @@ class BatchedDualCollector(BaseCollector):
                        else torch.where(_rows_mask(rows, value), value, before))
         return td
 
+    def _score_next(self, root: TensorDictBase, rows: np.ndarray) -> tuple[np.ndarray, TensorDictBase]:
+        """Lines 9-11 for the action after the H_f-th step of copies ``rows``: drawn, scored (smoothing
+        included) and never executed; ``root`` keeps no action. The other rows' trigger state is untouched."""
+        n = self.num_envs
+        root.set(self.init_key, torch.zeros(n, 1, dtype=torch.bool, device=root.device))
+        with torch.no_grad(), set_exploration_type(self.exploration_type):
+            inputs = root.clone(False)
+            inputs.set("_acting", self._mask(rows))
+            scored = self.forward_policy(inputs)
+        fired = np.zeros(n, dtype=bool)
+        mask = torch.from_numpy(rows.copy())
+        for trigger in self.triggers:
+            fired |= trigger.score_rows(scored, mask).reshape(n).cpu().numpy()
+        return fired & rows, scored
+
     def _iterate(self) -> TensorDictBase | None:
         """One action in every active copy; returns the executed steps (or None when none executed)."""
         td, n = self._td, self.num_envs
         active = np.ones(n, dtype=bool) if self.max_frames_per_env is None else self.frames_per_env < self.max_frames_per_env
         forward, reset = active & (self._phase == FORWARD), active & (self._phase == RESET)
-        at_horizon = forward & (self._phase_steps >= self.max_forward_steps)
-        held = at_horizon | ~active  # scored (at H_f) or idle, never executed
         td.set(self.init_key, torch.from_numpy(self._phase_steps == 0).reshape(n, 1).to(td.device))
         for trigger in self.triggers:
             trigger.set_enabled(torch.from_numpy(forward), restart=torch.from_numpy(self._restart))
         self._restart[:] = False
         td = self._act(td, forward, reset)
-        if held.all():  # nothing to execute: score the horizon rows' actions (no env step)
-            stepped = td.clone(False)
-            stepped.set("next", self._skip_next(td))
-            fired = np.zeros(n, dtype=bool)
-            for trigger in self.triggers:
-                if trigger.enabled:
-                    fired |= trigger.score_step(td.clone(False)).reshape(n).cpu().numpy()
-        else:
-            if held.any():
-                td.set("_step", torch.from_numpy(~held).to(td.device))
-            stepped = self.env.step(td)
-            td.pop("_step", None)
-            flag = stepped.get(("next", self.trigger_key), None)
-            fired = np.zeros(n, dtype=bool) if flag is None else flag.reshape(n).cpu().numpy() & forward
-        executed = ~held & ~fired
+        if not active.all():  # a copy past its budget is neither stepped nor scored
+            td.set("_step", self._mask(active))
+        stepped = self.env.step(td)
+        td.pop("_step", None)
+        flag = stepped.get(("next", self.trigger_key), None)
+        fired = np.zeros(n, dtype=bool) if flag is None else flag.reshape(n).cpu().numpy() & forward
+        executed = active & ~fired
         nxt = stepped.get("next")
         root = step_mdp(stepped, exclude_action=True, exclude_reward=True, exclude_done=False, keep_other=True)
         terminated = nxt.get("terminated", None)
@@ -279,14 +334,13 @@ class BatchedDualCollector(BaseCollector):
             raise KeyError(f"the env's step output has no {self.reset_success_key!r} entry (the at-initial-state check); "
                            f"pass reset_success_key=... to BatchedDualCollector.")
         at_initial = success_flag.reshape(n).cpu().numpy()
-        ends = np.zeros(n, dtype=bool)  # executed steps that end their episode (done and truncated set)
         fwd_exec, rst_exec = executed & forward, executed & reset
         fwd_term = fwd_exec & terminated
         fwd_last = fwd_exec & ~terminated & (self._phase_steps >= self.max_forward_steps)
         success = rst_exec & at_initial & (self._phase_steps >= self.min_reset_steps)
         rst_term = rst_exec & ~success & terminated
         manual = rst_exec & ~success & ~terminated & (self._phase_steps >= self.max_reset_steps)
-        ends |= fwd_term | fwd_last | success | rst_term | manual
+        ends = fwd_term | fwd_last | success | rst_term | manual  # executed steps that end their episode
         batch = None
         if executed.any():
             rows = torch.from_numpy(np.flatnonzero(executed))
@@ -302,12 +356,18 @@ class BatchedDualCollector(BaseCollector):
             batch.set(("collector", "traj_ids"), torch.from_numpy(self._traj_ids[executed]).to(batch.device))
 
         # the episodes that end (lines 10-13, 17-19, 24-25); triggered rows keep their state
-        triggered = fired & ~at_horizon
-        for i in np.flatnonzero(triggered | at_horizon):
-            outcome = "triggered" if fired[i] else "requested"
+        root = self._clear_flags(root)
+        horizon_fired, scored = (self._score_next(root, fwd_last) if fwd_last.any() and self.triggers
+                                 else (np.zeros(n, dtype=bool), None))
+        for i in np.flatnonzero(fired):
+            self.counters["triggered_resets"][i] += 1
+            self.counters["forward_episodes"][i] += 1
+            self._record(i, "triggered", root[int(i)], nxt[int(i)])
+        for i in np.flatnonzero(fwd_last):
+            outcome = "triggered" if horizon_fired[i] else "requested"
             self.counters[f"{outcome}_resets"][i] += 1
             self.counters["forward_episodes"][i] += 1
-            self._record(i, outcome, root[int(i)])
+            self._record(i, outcome, root[int(i)], None if scored is None else scored[int(i)])
         for i in np.flatnonzero(fwd_term):
             self.counters["forward_episodes"][i] += 1
             self.counters["terminations"][i] += 1
@@ -318,7 +378,6 @@ class BatchedDualCollector(BaseCollector):
             self.counters["successful_resets" if success[i] else "terminations" if rst_term[i] else "manual_resets"][i] += 1
             self._record(i, outcome, nxt[int(i)])
         hard = fwd_term | rst_term | manual
-        root = self._clear_flags(root)
         if hard.any():  # a manual reset of those copies only (env.reset with "_reset")
             mask = torch.from_numpy(hard).reshape(n, 1).to(root.device)
             fresh = self.env.reset(TensorDict({"_reset": mask}, batch_size=self.env.batch_size, device=root.device))
@@ -328,17 +387,10 @@ class BatchedDualCollector(BaseCollector):
                 if target is not None and not (isinstance(key, str) and key.startswith("_")):
                     target[rows] = fresh.get(key)[rows].to(target.dtype)
             root = self._clear_flags(root)
-        self._begin(np.flatnonzero(triggered | at_horizon), RESET, root)
+        self._begin(np.flatnonzero(fired | fwd_last), RESET, root)
         self._begin(np.flatnonzero(success | hard), FORWARD, root)
         self._td = root
         return batch
-
-    def _skip_next(self, td: TensorDictBase) -> TensorDictBase:
-        """The next tensordict of a step that executes nothing: every state entry as it was."""
-        spec_keys = set(self.env.full_observation_spec.keys(True, True)) | set(self.env.full_done_spec.keys(True, True))
-        nxt = td.select(*[k for k in spec_keys if td.get(k, None) is not None]).clone()
-        nxt.set("reward", torch.zeros(self.num_envs, 1, device=td.device))
-        return nxt
 
     def _finished(self) -> bool:
         if self.total_frames >= 0 and self._frames >= self.total_frames:
@@ -357,6 +409,15 @@ class BatchedDualCollector(BaseCollector):
             if batch is not None:
                 yield batch
 
+    # ------------------------------------------------------------- one copy
+    def copy(self, i: int) -> CollectorCopy:
+        """Copy ``i``'s view with a single collector's interface (independent runs only)."""
+        if self.shared_examples:
+            raise ValueError("copy() gives one run's view; with a shared example buffer the copies are one run.")
+        if not (isinstance(i, int) and 0 <= i < self.num_envs):
+            raise IndexError(f"copy index {i!r} out of range for {self.num_envs} copies.")
+        return CollectorCopy(self, i)
+
     # --------------------------------------------------------- state / seeding
     def set_seed(self, seed: int, static_seed: bool = False) -> int:
         torch.manual_seed(seed)
@@ -373,6 +434,7 @@ class BatchedDualCollector(BaseCollector):
             example_buffers=[b.state_dict() for b in self.example_buffers],
             trigger_state=[(t._smoothed, t.enabled_rows) for t in self.triggers],
             events=[{**e, "state": e["state"].to_dict()} for e in self._events],
+            pending=dict(self._pending),
             rng_state=torch.get_rng_state(),
         )
 
@@ -396,6 +458,7 @@ class BatchedDualCollector(BaseCollector):
             trigger._smoothed = smoothed
         self._events = [{**e, "state": TensorDict.from_dict(e["state"])} for e in state_dict.get("events", [])]
         torch.set_rng_state(state_dict["rng_state"])
+        self._pending = dict(state_dict.get("pending", {}))
         if state_dict["td"] is None:
             self._td = None
             return
@@ -412,3 +475,110 @@ class BatchedDualCollector(BaseCollector):
     def __repr__(self) -> str:
         return (f"{type(self).__name__}(env={type(self.env).__name__}, N={self.num_envs}, H_f={self.max_forward_steps}, "
                 f"H_r={self.max_reset_steps}, frames={self._frames}, phases={self.phases})")
+
+
+class CollectorCopy:
+    """One copy of a :class:`BatchedDualCollector` seen as a single run's collector.
+
+    It reads like :class:`~torchrl_reset.DualCollector` for the code that keeps one run's records
+    and checkpoints: ``counters``, ``frames``, ``phase``, ``forward_share``, ``reset_success_rate``,
+    :meth:`metrics`, ``example_buffer``, :meth:`pop_events` (this copy's events), and
+    :meth:`state_dict` / :meth:`load_state_dict` in :class:`~torchrl_reset.DualCollector`'s format,
+    so a run checkpointed alone continues in a batch and the other way round. A saved state is
+    loaded before the batch's first iteration (the env is reset then, and the copy continues from
+    its saved simulator state); ``rng_state`` is torch's global generator state, saved from and
+    loaded into whatever stream is current when the call is made (the caller's run's own)."""
+
+    def __init__(self, collector: BatchedDualCollector, index: int) -> None:
+        self.collector, self.index = collector, index
+
+    @property
+    def counters(self) -> dict[str, int]:
+        return {k: int(v[self.index]) for k, v in self.collector.counters.items()}
+
+    @property
+    def frames(self) -> int:
+        return int(self.collector.frames_per_env[self.index])
+
+    @property
+    def phase(self) -> str:
+        return PHASE_NAMES[int(self.collector._phase[self.index])]
+
+    def metrics(self) -> dict[str, float]:
+        return self.collector._with_rates(self.counters)
+
+    @property
+    def forward_share(self) -> float:
+        return self.metrics()["forward_share"]
+
+    @property
+    def reset_success_rate(self) -> float:
+        return self.metrics()["reset_success_rate"]
+
+    @property
+    def example_buffer(self) -> InitialStateBuffer:
+        return self.collector.example_buffers[self.index]
+
+    @property
+    def triggers(self) -> list:
+        return self.collector.triggers
+
+    def _own_events(self) -> list[dict]:
+        return [e for e in self.collector._events if e["env"] == self.index]
+
+    def pop_events(self) -> list[dict]:
+        """This copy's events since the last call, as :meth:`DualCollector.pop_events` gives them."""
+        mine = self._own_events()
+        if mine:
+            self.collector._events = [e for e in self.collector._events if e["env"] != self.index]
+        return [{k: v for k, v in e.items() if k != "env"} for e in mine]
+
+    def state_dict(self) -> OrderedDict:
+        """This copy's state in :meth:`DualCollector.state_dict`'s format."""
+        c, i = self.collector, self.index
+        if c._td is not None:
+            td = c._td[i].exclude(*[k for k in ("_step",) if k in c._td.keys()]).to_dict()
+            env_state = c._state_owner.get_copy_state(i)
+            smoothing = [t.row_smoothing(i) for t in c.triggers]
+        elif i in c._pending:
+            saved, smoothing = c._pending[i]
+            td, env_state = saved["td"], saved["env_state"]
+        else:
+            td, env_state, smoothing = None, None, [None for _ in c.triggers]
+        return OrderedDict(
+            counters=self.counters, phase=int(c._phase[i]), phase_steps=int(c._phase_steps[i]),
+            traj_id=int(c._traj_ids[i]), frames=self.frames, td=td, env_state=env_state,
+            example_buffer=self.example_buffer.state_dict(), trigger_smoothing=smoothing,
+            events=[{**{k: v for k, v in e.items() if k != "env"}, "state": e["state"].to_dict()}
+                    for e in self._own_events()],
+            rng_state=torch.get_rng_state(),
+        )
+
+    def load_state_dict(self, state_dict: OrderedDict) -> None:
+        c, i = self.collector, self.index
+        missing = {"counters", "phase", "phase_steps", "traj_id", "frames", "td", "example_buffer"} - set(state_dict)
+        if missing:
+            raise KeyError(f"not a DualCollector state_dict: missing {sorted(missing)}.")
+        if c._td is not None:
+            raise RuntimeError("a copy's state is loaded before the batch's first iteration.")
+        if state_dict["td"] is not None and (state_dict.get("env_state") is None
+                                             or not callable(getattr(c._state_owner, "set_copy_state", None))):
+            raise ValueError("the saved state has no simulator state to restore (or this env cannot restore one "
+                             "copy): a copy resumes exactly or not at all.")
+        counters = dict.fromkeys(COUNTERS, 0) | dict(state_dict["counters"])
+        for key, value in counters.items():
+            c.counters[key][i] = int(value)
+        c._phase[i], c._phase_steps[i] = int(state_dict["phase"]), int(state_dict["phase_steps"])
+        c._traj_ids[i] = int(state_dict["traj_id"])
+        c._frames = int(c.frames_per_env.sum())
+        self.example_buffer.load_state_dict(state_dict["example_buffer"])
+        c._events = [e for e in c._events if e["env"] != i] + [
+            {**e, "env": i, "state": TensorDict.from_dict(e["state"], batch_size=[])} for e in state_dict.get("events", [])]
+        if state_dict.get("rng_state") is not None:
+            torch.set_rng_state(state_dict["rng_state"])
+        if state_dict["td"] is None:
+            c._pending.pop(i, None)
+            return
+        smoothing = list(state_dict.get("trigger_smoothing") or [])
+        c._pending[i] = ({"td": state_dict["td"], "env_state": state_dict["env_state"]},
+                         smoothing + [None] * (len(c.triggers) - len(smoothing)))

@@ -213,6 +213,43 @@ class ResetTriggerTransform(Transform):
         tensordict.set(self.trigger_key, trigger.unsqueeze(-1))
         return trigger
 
+    def score_rows(self, tensordict: TensorDictBase, rows: torch.Tensor) -> torch.Tensor:
+        """:meth:`score_step` for the rows of the boolean mask ``rows`` of a batched env only (the flag is
+        False elsewhere); the other rows' smoothing and the enabled rows are left as they were.
+
+        :class:`~torchrl_reset.BatchedDualCollector` calls it on the actions drawn after some copies'
+        H_f-th step while the other copies' episodes go on."""
+        saved_rows, saved = self._rows, self._smoothed
+        self._rows = rows.detach().clone()
+        try:
+            flag = self.score_step(tensordict)
+        finally:
+            new, self._rows = self._smoothed, saved_rows
+            if saved is not None and new is not None and saved.shape == new.shape:
+                self._smoothed = torch.where(rows.reshape(new.shape), new, saved)
+            else:
+                self._smoothed = saved
+        return flag
+
+    def row_smoothing(self, row: int) -> torch.Tensor | None:
+        """Row ``row``'s smoothed score (a 0-dim tensor, what an unbatched env's trigger holds), or None
+        when that row's smoothing restarts at its next score."""
+        if self._smoothed is None or self._rows is None or not bool(self._rows.reshape(-1)[row]):
+            return None
+        value = self._smoothed.reshape(-1)[row]
+        return None if bool(value.isnan()) else value.clone()
+
+    def restore_row(self, row: int, smoothed: torch.Tensor | None, rows: int) -> None:
+        """Sets row ``row`` (of a batch of ``rows``) to continue from ``smoothed`` (:meth:`row_smoothing`
+        of a batch, or an unbatched trigger's state); None: its smoothing restarts."""
+        if self._rows is None or self._rows.numel() != rows:
+            self._rows = torch.zeros(rows, dtype=torch.bool)
+        if self._smoothed is None or self._smoothed.numel() != rows:
+            self._smoothed = torch.full((rows,), float("nan"))
+        self._rows[row] = smoothed is not None
+        self._smoothed[row] = float("nan") if smoothed is None else float(smoothed.reshape(-1)[0])
+        self.enabled = bool(self._rows.any())
+
     def _inv_call(self, tensordict: TensorDictBase) -> TensorDictBase:
         if not self.enabled:
             return tensordict
