@@ -132,12 +132,16 @@ def reset_tau(cfg: DictConfig) -> float:
     return float(cfg.tau if tau is None else tau)
 
 
-def make_trigger(cfg: DictConfig, reset_agent: Agent) -> ResetTriggerTransform:
+def make_trigger(cfg: DictConfig, reset_agent: Agent, *, model=None, threshold=None) -> ResetTriggerTransform:
+    """The reset trigger on ``reset_agent``'s model (or ``model``: a batch's runs as one, with ``threshold``
+    one per row where they differ)."""
+    model = reset_agent.model if model is None else model
     if cfg.algo.name == "ours":
-        threshold = cfg.task.p_thresh if cfg.algo.threshold is None else cfg.algo.threshold
-        return ResetTriggerTransform(reset_agent.model, float(threshold))
+        if threshold is None:
+            threshold = float(cfg.task.p_thresh if cfg.algo.threshold is None else cfg.algo.threshold)
+        return ResetTriggerTransform(model, threshold)
     return ResetTriggerTransform(
-        reset_agent.model, float(cfg.algo.threshold), score="value", reduction="min",
+        model, float(cfg.algo.threshold) if threshold is None else threshold, score="value", reduction="min",
         model_out_key="state_action_value", score_key="reset_value",
     )
 

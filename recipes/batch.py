@@ -62,6 +62,14 @@ BATCHED_SETTINGS = ("task.name", "algo.name", "hidden_sizes", "gamma", "tau", "r
                     "threads", "speed")
 
 
+# with speed.batched_acting the runs also share one collector over one env of S copies (and one noise process kind)
+ACTING_SETTINGS = ("task.forward_horizon", "reset.max_steps", "reset.min_steps", "env", "exploration", "algo.threshold")
+
+
+def batched_acting(cfg: DictConfig) -> bool:
+    return bool(OmegaConf.select(cfg, "speed.batched_acting", default=False))
+
+
 def batch_runs(cfg: DictConfig) -> list[tuple[int, object]] | None:
     """The runs of a batch as ``(seed, value)`` pairs, or None for one run.
 
@@ -113,6 +121,11 @@ def run_configs(cfg: DictConfig, runs: list, *, check: bool = True) -> list[Dict
         seen = {str(OmegaConf.select(c, setting, default=None)) for c in configs}
         if len(seen) > 1:
             problems.append(f"{setting} differs between the runs ({', '.join(sorted(seen))}): the batched updates share it")
+    for setting in ACTING_SETTINGS if batched_acting(cfg) else ():
+        seen = {str(OmegaConf.select(c, setting, default=None)) for c in configs}
+        if len(seen) > 1:
+            problems.append(f"{setting} differs between the runs ({', '.join(sorted(seen))}): with speed.batched_acting "
+                            "the runs share one collector (speed.batched_acting=false lets it differ)")
     if problems:
         raise ConfigError("invalid configuration for a batch of runs:\n  - " + "\n  - ".join(problems))
     for run_cfg in configs:
@@ -171,6 +184,7 @@ class BatchTiming:
         measured = self.run_steps > 0
         return {
             "runs": len(self.runs), "seeds": [int(r.cfg.seed) for r in self.runs],
+            "acting": "batched" if batched_acting(self.runs[0].cfg) else "per run",
             "steady_iterations": self.iterations,
             "run_steps_per_second": self.run_steps / self.seconds if measured else None,
             "update_ms_per_iteration": 1e3 * self.update_seconds / self.iterations if measured else None,
@@ -229,6 +243,97 @@ def train_batch(cfg: DictConfig, runs: list) -> list[dict]:
         return _train_batch(configs)
 
 
+class RowExploration:
+    """The S runs' exploration on one batch of S rows: row ``s`` gets run ``s``'s own noise module (its
+    Ornstein-Uhlenbeck process), drawn from run ``s``'s random stream, for the rows the policy acts for
+    (the collector's ``"_acting"`` mask) only; so each run draws the numbers it draws alone."""
+
+    def __init__(self, policy, noises: list, streams: list[RunRNG]) -> None:
+        self.policy, self.noises, self.streams = policy, noises, streams
+
+    def __call__(self, td):
+        td = self.policy(td)
+        rows = td.get("_acting").nonzero().flatten().tolist()
+        outputs = []
+        for s in rows:
+            with self.streams[s].active():
+                outputs.append(self.noises[s](td[s]))
+        for key in outputs[0].keys(True, True) if outputs else ():
+            if key == "_acting":
+                continue
+            value = torch.stack([out.get(key) for out in outputs])
+            full = td.get(key, None)
+            full = (torch.zeros((td.shape[0], *value.shape[1:]), dtype=value.dtype, device=value.device)
+                    if full is None else full.clone())
+            full[rows] = value.to(full.dtype)
+            td.set(key, full)
+        return td
+
+
+def batched_collector(runs: list, updates: BatchedUpdates, streams: list[RunRNG]):
+    """One :class:`~torchrl_reset.BatchedDualCollector` for the S runs (``speed.batched_acting``): one env of S
+    copies, row ``s`` seeded as run ``s``'s env, the runs' policies and trigger ensembles acting as one (the
+    batched updates' own parameter stacks), each run's exploration on its row. Each run then collects through
+    its copy, loaded from its own collector (fresh, or resumed from its checkpoint)."""
+    from agents import make_trigger
+    from config_checks import reset_horizon
+    from torchrl.envs import TransformedEnv
+    from torchrl_reset import BatchedDualCollector
+    from torchrl_reset_envs import BatchedTaskEnv
+
+    cfg = runs[0].cfg
+    env = BatchedTaskEnv(cfg.task.name, seeds=[int(r.cfg.seed) for r in runs], device=cfg.device,
+                         **(OmegaConf.to_container(cfg.env, resolve=True) if cfg.get("env") else {}))
+    thresholds = [float(r.trigger.threshold) for r in runs]
+    trigger = make_trigger(cfg, runs[0].reset, model=updates.reset.ensembles.module(),
+                           threshold=thresholds[0] if len(set(thresholds)) == 1 else thresholds)
+    env = TransformedEnv(env, trigger)
+
+    def policy(agent_updates, phase: str):
+        noises = [getattr(r.collector, f"{phase}_policy")[-1] for r in runs]  # each run's OU module
+        return RowExploration(agent_updates.policies.module(), noises, streams)
+
+    collector = BatchedDualCollector(
+        env, policy(updates.forward, "forward"), policy(updates.reset, "reset"),
+        max_forward_steps=int(cfg.task.forward_horizon), max_reset_steps=reset_horizon(cfg),
+        min_reset_steps=int(cfg.reset.min_steps), max_frames_per_env=[int(r.cfg.total_steps) for r in runs],
+        example_buffers=[r.collector.example_buffer for r in runs])
+    for s, run in enumerate(runs):
+        with streams[s].active():
+            collector.copy(s).load_state_dict(run.collector.state_dict())
+        run.adopt(collector.copy(s))
+    return collector
+
+
+def _per_run_steps(runs: list, streams: list[RunRNG]):
+    """Each iteration, one step of every run still going, from its own collector: ``[(run, step, phase)]``."""
+    steps = [iter(run.collector) for run in runs]
+    done = [False] * len(runs)
+    while not all(done):
+        stepped = []
+        for s, run in enumerate(runs):
+            if done[s]:
+                continue
+            with streams[s].active():
+                batch = next(steps[s], None)
+            if batch is None:
+                done[s] = True
+                continue
+            stepped.append((s, batch.to(run.cfg.device), DualCollector.phase_of(batch)))
+        if stepped:
+            yield stepped
+
+
+def _batched_steps(collector, runs: list):
+    """Each iteration of the batch's one collector, its executed steps split by run: ``[(run, step, phase)]``."""
+    for batch in collector:
+        stepped = []
+        for j, s in enumerate(batch.get(("collector", "env_ids")).tolist()):
+            step = batch[j:j + 1].to(runs[s].cfg.device)  # as a run's own collector yields it: batch [1]
+            stepped.append((s, step, DualCollector.phase_of(step)))
+        yield stepped
+
+
 def _train_batch(configs: list[DictConfig]) -> list[dict]:
     import train  # the single run's pieces (train imports this module)
 
@@ -240,36 +345,31 @@ def _train_batch(configs: list[DictConfig]) -> list[dict]:
         runs.append(train.build_run(run_cfg, precision))
         streams.append(RunRNG())
     updates = BatchedUpdates(runs)
+    shared = batched_collector(runs, updates, streams) if batched_acting(configs[0]) else None
     timing = BatchTiming(runs, int(configs[0].heat_up))
-    steps = [iter(run.collector) for run in runs]
-    done = [False] * len(runs)
+    # lines 5-15 / 17-22 of each run: its own env step (from its own collector, or its row of the shared one)
+    iterations = _per_run_steps(runs, streams) if shared is None else _batched_steps(shared, runs)
     interrupted = False
     try:
         with stop_on_sigterm() as stop_requested:
-            while not all(done):
-                steady, started, in_updates = timing.steady(), time.perf_counter(), updates.seconds
-                stepped, requests = [], {"forward": {}, "reset": {}}
-                for s, run in enumerate(runs):  # lines 5-15 / 17-22 of each run: its own env step
-                    if done[s]:
-                        continue
+            started = time.perf_counter()
+            for stepped in iterations:
+                steady, in_updates = timing.steady(), updates.seconds
+                requests = {"forward": {}, "reset": {}}
+                for s, batch, phase in stepped:
                     with streams[s].active():
-                        batch = next(steps[s], None)
-                        if batch is None:
-                            done[s] = True
-                            continue
-                        batch = batch.to(run.cfg.device)
-                        phase = DualCollector.phase_of(batch)
-                        sample = run.learner.store(batch, phase)  # its sample, from its own stream
+                        sample = runs[s].learner.store(batch, phase)  # its sample, from its own stream
                     if sample is not None:
                         requests[phase][s] = sample
-                    stepped.append((s, batch, phase))
                 for phase in ("forward", "reset"):  # lines 16 / 23 of every run, one call per agent type
                     updates.apply(phase, requests[phase])
                 for s, batch, phase in stepped:
                     with streams[s].active():
                         runs[s].after_step(batch, phase)
-                if steady and stepped:
-                    timing.add(time.perf_counter() - started, updates.seconds - in_updates, len(stepped))
+                now = time.perf_counter()
+                if steady:  # the iteration's time from the end of the previous one (its env steps included)
+                    timing.add(now - started, updates.seconds - in_updates, len(stepped))
+                started = now
                 if stop_requested:
                     interrupted = True
                     log.warning("SIGTERM at step %d: checkpointing the batch", max(r.collector.frames for r in runs))
@@ -288,4 +388,6 @@ def _train_batch(configs: list[DictConfig]) -> list[dict]:
     for s, run in enumerate(runs):
         with streams[s].active():
             summaries.append(run.finish(interrupted, extra={"batch": timing.row()}))
+    if shared is not None:
+        shared.shutdown()
     return summaries

@@ -56,7 +56,7 @@ def validate(cfg: DictConfig) -> None:
     sampling = OmegaConf.select(cfg, "algo.nstep_sampling", default="episode")
     if cfg.algo.name == "ours" and sampling not in ("episode", "transition"):
         problems.append(f"algo.nstep_sampling must be episode or transition, got {sampling!r}")
-    for flag in ("speed.accelerate", "speed.fused_adam", "speed.retain_memory"):
+    for flag in ("speed.accelerate", "speed.fused_adam", "speed.retain_memory", "speed.batched_acting"):
         value = OmegaConf.select(cfg, flag, default=True)
         if not isinstance(value, bool):
             problems.append(f"{flag} must be true or false, got {value!r}")

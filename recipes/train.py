@@ -126,6 +126,14 @@ class Run:
         if frames % int(cfg.checkpoint_every) == 0:
             self.checkpoint()
 
+    def adopt(self, collector) -> None:
+        """Collects with ``collector`` from now on (a batch's :meth:`~torchrl_reset.BatchedDualCollector.copy`,
+        loaded from this run's own collector): every piece that reads the collector reads it."""
+        own = self.collector
+        for holder in (self, self.state, self.record, self.learner):
+            holder.collector = collector
+        own.shutdown()  # its env is not stepped again
+
     def checkpoint(self):
         self.record.mark_time()
         return self.state.save()

@@ -69,10 +69,12 @@ def assert_same_run(a: Path, b: Path) -> None:
         [(r["frames"], r["triggered"], r["reset_success"]) for r in eb]
 
 
-@pytest.mark.parametrize("algo,steps", [("ours", 300), ("lnt", 200)])
-def test_each_run_of_a_batch_is_the_same_seed_run_alone(tmp_path, algo, steps):
+@pytest.mark.parametrize("algo,steps,acting", [("ours", 300, "false"), ("lnt", 200, "false"), ("ours", 300, "true")])
+def test_each_run_of_a_batch_is_the_same_seed_run_alone(tmp_path, algo, steps, acting):
     summaries = batch.train_batch(
-        config(f"algo={algo}", f"total_steps={steps}", f"sweep_dir={tmp_path / 'batch'}"), [0, 1])
+        config(f"algo={algo}", f"total_steps={steps}", f"sweep_dir={tmp_path / 'batch'}", f"speed.batched_acting={acting}"),
+        [0, 1])
+    assert all(s["batch"]["acting"] == ("batched" if acting == "true" else "per run") for s in summaries)
     assert [s["seed"] for s in summaries] == [0, 1] and all(s["steps"] == steps and s["finished"] for s in summaries)
     for seed in (0, 1):
         alone = train.train(config(f"algo={algo}", f"total_steps={steps}", f"seed={seed}",
@@ -127,11 +129,49 @@ def test_kill_9_and_resume_reproduce_the_uninterrupted_batch(tmp_path, whole_bat
         assert a == b
 
 
+def test_batched_acting_gives_the_per_run_batch_with_a_threshold_per_run(tmp_path):
+    """One env of S copies, one policy and one trigger call for all (speed.batched_acting) against one env and
+    collector per run: the actions are the runs' own bit for bit (RunPolicies.act), so the runs are the same
+    up to the update calls' grouping. A run whose trigger stops its action executes nothing at that
+    iteration, so it updates in a later call than with its own collector (which goes on to the next step
+    at once), and a batched product over another set of runs rounds differently: counters and trigger
+    events identical, losses to float32 rounding. The thresholds differ between the runs (a p_thresh sweep):
+    each row of the shared trigger uses its own, and both fire."""
+    folders = {}
+    for acting in ("true", "false"):
+        cfg = config("algo=ours", "total_steps=300", "seeds=[5]", "vary=task.p_thresh", "vary_values=[0.3,0.7]",
+                     f"run_dir={tmp_path}/{acting}/p${{task.p_thresh}}", f"speed.batched_acting={acting}")
+        summaries = batch.train_batch(cfg, batch.batch_runs(cfg))
+        folders[acting] = summaries
+    for threshold in ("0.3", "0.7"):
+        assert_same_run(tmp_path / "true" / f"p{threshold}", tmp_path / "false" / f"p{threshold}")
+    triggered = [s["triggered_resets"] for s in folders["true"]]
+    assert triggered == [s["triggered_resets"] for s in folders["false"]]
+    assert triggered[1] > triggered[0] > 0  # the higher threshold stops more actions: each row has its own
+
+
+def test_a_resumed_batch_with_batched_acting_reproduces_the_uninterrupted_one(tmp_path):
+    """Each run's checkpoint holds its copy in a single collector's format; resuming rebuilds the shared
+    collector from them and continues bit for bit."""
+    acting = ("algo=ours", "speed.batched_acting=true", "task.p_thresh=0.7")
+    batch.train_batch(config(*acting, "total_steps=300", f"sweep_dir={tmp_path / 'whole'}"), [3, 4])
+    batch.train_batch(config(*acting, "total_steps=150", f"sweep_dir={tmp_path / 'cut'}"), [3, 4])
+    batch.train_batch(config(*acting, "total_steps=300", f"sweep_dir={tmp_path / 'cut'}", "resume=true"), [3, 4])
+    for seed in (3, 4):
+        folder = f"peg_insertion_remove/ours/seed{seed}"
+        for name in ("progress.csv", "eval.csv", "triggers.csv", "resets.csv"):
+            a = [{k: v for k, v in r.items() if k != "steps_per_second"} for r in rows(tmp_path / "whole" / folder / name)]
+            b = [{k: v for k, v in r.items() if k != "steps_per_second"} for r in rows(tmp_path / "cut" / folder / name)]
+            assert a == b, (seed, name)
+        assert rows(tmp_path / "whole" / folder / "triggers.csv")  # the trigger fired (its state was resumed too)
+
+
 @pytest.mark.parametrize("overrides,message", [
     (["seeds=0"], "must be >= 1"),
     (["seeds=[1,1]"], "twice"),
     (["seeds=[0,1]", "run_dir=/tmp/one_folder"], "one run_dir each"),
     (["seeds=2", "speed.compile=[reset]"], "speed.compile"),
+    (["seeds=2", "speed.batched_acting=yes"], "true or false"),
 ])
 def test_bad_batches_fail_before_training(tmp_path, overrides, message):
     cfg = config(f"sweep_dir={tmp_path}", *overrides)
@@ -147,6 +187,8 @@ def test_bad_batches_fail_before_training(tmp_path, overrides, message):
     (["vary=reset.critic_lr", "vary_values=[0.001,0.0001]"], "share it"),
     (["vary=task.no_such_key", "vary_values=[1,2]"], "no such setting"),
     (["vary=task.p_thresh", "vary_values=[0.1,0.1]"], "distinct"),
+    (["vary=task.forward_horizon", "vary_values=[10,20]", "speed.batched_acting=true",
+      "run_dir=/tmp/x/h${task.forward_horizon}/s${seed}"], "share one collector"),
 ])
 def test_bad_varied_batches_fail_before_training(tmp_path, overrides, message):
     cfg = config(f"sweep_dir={tmp_path}", *overrides)

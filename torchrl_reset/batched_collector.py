@@ -523,6 +523,9 @@ class CollectorCopy:
     def triggers(self) -> list:
         return self.collector.triggers
 
+    def shutdown(self, *args, **kwargs) -> None:
+        """A copy closes nothing: the batch's env is closed with the batch (:meth:`BatchedDualCollector.shutdown`)."""
+
     def _own_events(self) -> list[dict]:
         return [e for e in self.collector._events if e["env"] == self.index]
 

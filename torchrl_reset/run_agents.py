@@ -118,10 +118,27 @@ class RunPolicies:
         return self.tanh(td).get(self.action_key)
 
 
+    def act(self, observation: torch.Tensor) -> torch.Tensor:
+        """Row ``s`` of ``observation`` ``[S, d]`` by run ``s``'s policy, computed as that policy computes one
+        observation alone (one ``F.linear`` per layer and row: the kernels ``nn.Linear`` runs on one
+        observation), so the actions are bit for bit those of the runs alone; ``[S, a]``."""
+        rows = []
+        last = len(self.weights) - 1
+        for s in range(observation.shape[0]):
+            h = observation[s]
+            for i, (w, b) in enumerate(zip(self.weights, self.biases)):
+                h = nn.functional.linear(h, w[s], b[s])
+                if i < last:
+                    h = h.relu()
+            rows.append(h)
+        td = TensorDict({self.preactivation_key: torch.stack(rows)}, batch_size=[observation.shape[0]])
+        return self.tanh(td).get(self.action_key)
+
     def module(self, out_key: str = "action") -> TensorDictModule:
         """The S runs' policies acting on a batch of S rows, row ``s`` by run ``s`` (one env copy per
-        run, :class:`~torchrl_reset.BatchedDualCollector`): ``[S, d]`` observations to ``[S, a]`` actions."""
-        return TensorDictModule(lambda obs: self(obs.unsqueeze(1)).squeeze(1), in_keys=[self.in_key], out_keys=[out_key])
+        run, :class:`~torchrl_reset.BatchedDualCollector`): ``[S, d]`` observations to ``[S, a]``
+        actions, bit for bit those of the runs alone (:meth:`act`)."""
+        return TensorDictModule(self.act, in_keys=[self.in_key], out_keys=[out_key])
 
 
 _TRAINED = ("weight_{}", "bias_{}")

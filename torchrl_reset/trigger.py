@@ -48,7 +48,9 @@ class ResetTriggerTransform(Transform):
     Args:
         model (TensorDictModuleBase): reads the observation and action, writes per-member outputs
             ``[*batch, K]`` (``[*batch]`` is read as K = 1), e.g. :class:`~torchrl_reset.EnsembleValueOperator`.
-        threshold (float): the trigger fires when the score is strictly below it.
+        threshold (float, or a 1-D sequence of floats): the trigger fires when the score is strictly below
+            it; a sequence gives each row of a batched env its own threshold (runs of a ``p_thresh`` sweep
+            in one batch).
 
     Keyword Args:
         score (str or callable): ``"success_probability"`` (default), ``"value"``, or a callable
@@ -107,12 +109,19 @@ class ResetTriggerTransform(Transform):
             raise ValueError(f"score must be one of {SCORES} or a callable, got {score!r}.")
         if isinstance(reduction, str) and reduction not in MEMBER_REDUCTIONS:
             raise ValueError(f"reduction must be one of {MEMBER_REDUCTIONS} or a callable, got {reduction!r}.")
-        threshold = float(threshold)
-        if score == "success_probability" and not (0.0 < threshold < 1.0):
+        if isinstance(threshold, (torch.Tensor, list, tuple)):  # one per row of a batched env
+            threshold = torch.as_tensor(threshold, dtype=torch.float32).detach().clone()
+            if threshold.dim() != 1 or not threshold.numel():
+                raise ValueError(f"a threshold per row is a 1-D sequence, got shape {tuple(threshold.shape)}.")
+            values = threshold.tolist()
+        else:
+            threshold = float(threshold)
+            values = [threshold]
+        if score == "success_probability" and not all(0.0 < v < 1.0 for v in values):
             raise ValueError(
                 f"threshold is a success probability (p_thresh) and must lie in (0, 1), got {threshold!r}."
             )
-        if not math.isfinite(threshold):
+        if not all(math.isfinite(v) for v in values):
             raise ValueError(f"threshold must be finite, got {threshold!r}.")
         smoothing = float(smoothing)
         if not (0.0 <= smoothing < 1.0):
@@ -205,13 +214,21 @@ class ResetTriggerTransform(Transform):
                 smoothed = self.smoothing * previous + (1.0 - self.smoothing) * score
                 score = smoothed if rows is None else torch.where(previous.isnan(), score, smoothed)
             self._smoothed = score if rows is None else torch.where(rows, score, torch.full_like(score, float("nan")))
-        trigger = score < self.threshold
+        trigger = self._below(score)
         if rows is not None:  # a row that is off never triggers and reads as off
             trigger = trigger & rows
             score = torch.where(rows, score, torch.full_like(score, float("nan")))
         tensordict.set(self.score_key, score.unsqueeze(-1))
         tensordict.set(self.trigger_key, trigger.unsqueeze(-1))
         return trigger
+
+    def _below(self, score: torch.Tensor) -> torch.Tensor:
+        threshold = self.threshold
+        if isinstance(threshold, torch.Tensor):
+            if threshold.numel() != score.numel():
+                raise ValueError(f"{threshold.numel()} thresholds (one per row) for scores of shape {tuple(score.shape)}.")
+            threshold = threshold.to(score.device).reshape(score.shape)
+        return score < threshold
 
     def score_rows(self, tensordict: TensorDictBase, rows: torch.Tensor) -> torch.Tensor:
         """:meth:`score_step` for the rows of the boolean mask ``rows`` of a batched env only (the flag is
@@ -325,7 +342,7 @@ class ResetTriggerTransform(Transform):
         # Outside an env (e.g. on replay data) the transform only writes the score and the flag.
         score = self.evaluate(tensordict)
         tensordict.set(self.score_key, score.unsqueeze(-1))
-        tensordict.set(self.trigger_key, (score < self.threshold).unsqueeze(-1))
+        tensordict.set(self.trigger_key, self._below(score).unsqueeze(-1))
         return tensordict
 
     def extra_repr(self) -> str:
