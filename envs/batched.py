@@ -167,10 +167,8 @@ class BatchedTaskEnv(EnvBase):
         """Restores copy ``i`` from a single env's simulator state and its last outputs (a root tensordict
         of that env as a dict: ``observation``, ``reset_success``, ``reset_reward``, ``irrecoverable``)."""
         self.envs[i].set_simulator_state(state)
-        self._obs[i] = np.asarray(outputs["observation"], dtype=self._obs.dtype).reshape(self._obs[i].shape)
-        for cache, key in ((self._success, "reset_success"), (self._reset_reward, "reset_reward"),
-                           (self._irrecoverable, "irrecoverable")):
-            cache[i, 0] = np.asarray(outputs[key]).reshape(-1)[0]
+        info = {key: np.asarray(outputs[key]).reshape(-1)[0] for key in ("reset_success", "reset_reward", "irrecoverable")}
+        self._store(i, np.asarray(outputs["observation"]).reshape(self._obs[i].shape), info)
 
     def close(self, *, raise_if_closed: bool = True) -> None:
         for env in self.envs:

@@ -13,7 +13,8 @@ from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type, step_mdp
 
 from ._validation import check_int
-from .collector import COUNTERS, FORWARD, PHASE_NAMES, RESET, _state_owner, set_up_loop
+from .collector import (COUNTERS, FORWARD, PHASE_NAMES, RESET, _state_owner, check_state_keys, set_up_loop,
+                        stopped_scores)
 from .example_buffer import InitialStateBuffer
 
 __all__ = ["BatchedDualCollector", "CollectorCopy", "split_phases"]
@@ -211,9 +212,8 @@ class BatchedDualCollector(BaseCollector):
             event = {"env": i, "phase": PHASE_NAMES[int(self._phase[i])], "outcome": outcome,
                      "steps": int(self._phase_steps[i]), "frame": int(self.frames_per_env[i]),
                      "state": state.select(*keys).clone()}
-            if scored is not None and self.triggers:  # the triggers' scores of the action they stopped
-                event["scores"] = [float(scored.get(t.score_key).reshape(-1)[0]) for t in self.triggers
-                                   if scored.get(t.score_key, None) is not None]
+            if scored is not None and self.triggers:
+                event["scores"] = stopped_scores(self.triggers, scored)
             self._events.append(event)
 
     def _begin(self, rows: np.ndarray, phase: int, root: TensorDictBase) -> None:
@@ -540,7 +540,7 @@ class CollectorCopy:
         """This copy's state in :meth:`DualCollector.state_dict`'s format."""
         c, i = self.collector, self.index
         if c._td is not None:
-            td = c._td[i].exclude(*[k for k in ("_step",) if k in c._td.keys()]).to_dict()
+            td = c._td[i].to_dict()
             env_state = c._state_owner.get_copy_state(i)
             smoothing = [t.row_smoothing(i) for t in c.triggers]
         elif i in c._pending:
@@ -559,9 +559,7 @@ class CollectorCopy:
 
     def load_state_dict(self, state_dict: OrderedDict) -> None:
         c, i = self.collector, self.index
-        missing = {"counters", "phase", "phase_steps", "traj_id", "frames", "td", "example_buffer"} - set(state_dict)
-        if missing:
-            raise KeyError(f"not a DualCollector state_dict: missing {sorted(missing)}.")
+        check_state_keys(state_dict)
         if c._td is not None:
             raise RuntimeError("a copy's state is loaded before the batch's first iteration.")
         if state_dict["td"] is not None and (state_dict.get("env_state") is None

@@ -92,6 +92,18 @@ def set_up_loop(collector, create_env_fn, forward_policy, reset_policy, *, max_f
     return env
 
 
+def stopped_scores(triggers, scored: TensorDictBase) -> list[float]:
+    """The triggers' scores of the action they stopped (or scored after H_f), from the tensordict they scored."""
+    return [float(scored.get(t.score_key).reshape(-1)[0]) for t in triggers if scored.get(t.score_key, None) is not None]
+
+
+def check_state_keys(state_dict) -> None:
+    """Raises unless ``state_dict`` has the entries of :meth:`DualCollector.state_dict` a load needs."""
+    missing = {"counters", "phase", "phase_steps", "traj_id", "frames", "td", "example_buffer"} - set(state_dict)
+    if missing:
+        raise KeyError(f"not a DualCollector state_dict: missing {sorted(missing)}.")
+
+
 def _state_owner(env: EnvBase):
     """The innermost env (or wrapper) offering ``get_simulator_state`` / ``set_simulator_state``, if any."""
     while True:
@@ -274,9 +286,8 @@ class DualCollector(BaseCollector):
                 "frame": self._frames,
                 "state": state.select(*self.example_buffer.state_keys).clone(),
             }
-            if scored is not None and self.triggers:  # the triggers' scores of the action they stopped
-                event["scores"] = [float(scored.get(t.score_key).reshape(-1)[0]) for t in self.triggers
-                                   if scored.get(t.score_key, None) is not None]
+            if scored is not None and self.triggers:
+                event["scores"] = stopped_scores(self.triggers, scored)
             self._events.append(event)
 
     def _begin(self, phase: int, td: TensorDictBase) -> None:
@@ -467,9 +478,7 @@ class DualCollector(BaseCollector):
         )
 
     def load_state_dict(self, state_dict: OrderedDict) -> None:
-        missing = {"counters", "phase", "phase_steps", "traj_id", "frames", "td", "example_buffer"} - set(state_dict)
-        if missing:
-            raise KeyError(f"not a DualCollector state_dict: missing {sorted(missing)}.")
+        check_state_keys(state_dict)
         self.counters = dict.fromkeys(COUNTERS, 0) | dict(state_dict["counters"])
         self._frames = int(state_dict["frames"])
         self.example_buffer.load_state_dict(state_dict["example_buffer"])
