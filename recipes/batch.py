@@ -246,28 +246,112 @@ def train_batch(cfg: DictConfig, runs: list) -> list[dict]:
 class RowExploration:
     """The S runs' exploration on one batch of S rows: row ``s`` gets run ``s``'s own noise module (its
     Ornstein-Uhlenbeck process), drawn from run ``s``'s random stream, for the rows the policy acts for
-    (the collector's ``"_acting"`` mask) only; so each run draws the numbers it draws alone."""
+    (the collector's ``"_acting"`` mask) only; so each run draws the numbers it draws alone.
+
+    When every run's noise is a torchrl ``OrnsteinUhlenbeckProcessModule`` with the same process settings
+    (a batch's runs agree on ``exploration``), the acting rows advance as one vector step of that module's
+    update (``prev + theta (mu - prev) dt + sigma_t sqrt(dt) N(0, 1)``, the action moved by ``eps`` times
+    it and clamped into the action's box as the module's safe mode does), each row's normal draws taken
+    from its run's stream: the same numbers, bit for bit, as each module called on its own row
+    (``tests/test_batch.py``), without one module call per row. Otherwise each row calls its run's module."""
 
     def __init__(self, policy, noises: list, streams: list[RunRNG]) -> None:
         self.policy, self.noises, self.streams = policy, noises, streams
+        self.process = _shared_ou(noises)  # None: one module call per row
 
     def __call__(self, td):
         td = self.policy(td)
         rows = td.get("_acting").nonzero().flatten().tolist()
+        if not rows:
+            return td
+        if self.process is not None:
+            return self._vector(td, rows)
         outputs = []
         for s in rows:
             with self.streams[s].active():
                 outputs.append(self.noises[s](td[s]))
-        for key in outputs[0].keys(True, True) if outputs else ():
+        for key in outputs[0].keys(True, True):
             if key == "_acting":
                 continue
-            value = torch.stack([out.get(key) for out in outputs])
-            full = td.get(key, None)
-            full = (torch.zeros((td.shape[0], *value.shape[1:]), dtype=value.dtype, device=value.device)
-                    if full is None else full.clone())
-            full[rows] = value.to(full.dtype)
-            td.set(key, full)
+            _merge(td, key, rows, torch.stack([out.get(key) for out in outputs]))
         return td
+
+    def _vector(self, td, rows: list[int]):
+        from tensordict.utils import expand_as_right, expand_right
+        from torchrl.envs.utils import ExplorationType, exploration_type
+
+        if exploration_type() not in (ExplorationType.RANDOM, None):
+            return td  # the module adds noise only when exploring
+        module = self.noises[0]
+        ou, low, high = module.ou, *self.process
+        index = torch.tensor(rows)
+        action = td.get(ou.key)
+        if ou.steps_key in td.keys():
+            prev, steps = td.get(ou.noise_key)[index], td.get(ou.steps_key)[index]
+        else:  # the module's first call: a zero process at step 0
+            prev = torch.zeros((len(rows), *action.shape[1:]), device=action.device)
+            steps = torch.zeros(len(rows), dtype=torch.long, device=action.device)
+        is_init = td.get(module.is_init_key, None)
+        if is_init is not None:
+            is_init = is_init[index]
+            if is_init.ndim > 1 and is_init.shape[-1] == 1:
+                is_init = is_init.squeeze(-1)
+            prev = torch.masked_fill(prev, expand_right(is_init, prev.shape), 0)
+            steps = torch.masked_fill(steps, expand_right(is_init, steps.shape), 0)
+        draws = []
+        for j, s in enumerate(rows):
+            with self.streams[s].active():
+                draws.append(torch.randn_like(prev[j]))
+        prev = prev + ou.x0
+        noise = (prev + ou.theta * (ou.mu - prev) * ou.dt
+                 + ou.current_sigma(expand_as_right(steps, prev)) * np.sqrt(ou.dt) * torch.stack(draws))
+        eps = torch.stack([self.noises[s].eps for s in rows]).reshape(-1, *([1] * (noise.ndim - 1)))
+        moved = action[index] + eps * noise
+        if low is not None:
+            moved = torch.clamp(moved, low.expand_as(moved), high.expand_as(moved))
+        _merge(td, ou.noise_key, rows, noise - ou.x0)
+        _merge(td, ou.key, rows, moved)
+        _merge(td, ou.steps_key, rows, steps + 1)
+        return td
+
+
+def _merge(td, key, rows: list[int], value: torch.Tensor) -> None:
+    """Sets ``value`` (one row per acting row) into ``td[key]``; the other rows keep theirs (zeros if new)."""
+    full = td.get(key, None)
+    full = (torch.zeros((td.shape[0], *value.shape[1:]), dtype=value.dtype, device=value.device)
+            if full is None else full.clone())
+    full[rows] = value.to(full.dtype)
+    td.set(key, full)
+
+
+def _shared_ou(noises: list):
+    """``(low, high)`` of the action box (``(None, None)`` if unsafe) when all ``noises`` are torchrl OU modules
+    with one process setting and one action box, else None."""
+    from torchrl.data import Bounded
+    from torchrl.modules import OrnsteinUhlenbeckProcessModule
+
+    if not noises or not all(type(n) is OrnsteinUhlenbeckProcessModule for n in noises):
+        return None
+
+    def setting(n):
+        ou = n.ou
+        return (ou.theta, ou.mu, ou.sigma, ou.dt, ou.x0, ou.m, ou.c, ou.sigma_min, ou.key, n.is_init_key,
+                ou.noise_key, ou.steps_key, bool(n.safe))
+
+    first = noises[0]
+    if any(not isinstance(v, float) for v in setting(first)[:8]) or any(setting(n) != setting(first) for n in noises):
+        return None
+    if not first.safe:
+        return None, None
+    spec = first.spec[first.ou.key]
+    if not isinstance(spec, Bounded) or spec.dtype != torch.float32:
+        return None
+    low, high = spec.space.low, spec.space.high
+    for n in noises[1:]:
+        other = n.spec[first.ou.key]
+        if not isinstance(other, Bounded) or not (torch.equal(other.space.low, low) and torch.equal(other.space.high, high)):
+            return None
+    return low, high
 
 
 def batched_collector(runs: list, updates: BatchedUpdates, streams: list[RunRNG]):

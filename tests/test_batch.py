@@ -205,3 +205,67 @@ def test_a_batch_over_a_setting_gives_each_value_its_own_runs_and_folder(tmp_pat
     assert [(s["seed"], s["p_thresh"]) for s in summaries] == runs  # each run's trigger uses its own threshold
     assert sorted(p.parent.name + "/" + p.name for p in tmp_path.glob("p*/seed*")) == \
         ["p0.1/seed0", "p0.1/seed1", "p0.3/seed0", "p0.3/seed1"]
+
+
+def _noise_modules(count, sigma=0.2):
+    from torchrl.data import Bounded
+    from torchrl.modules import OrnsteinUhlenbeckProcessModule
+
+    spec = Bounded(-1.0, 1.0, shape=(3,))
+    return [OrnsteinUhlenbeckProcessModule(spec=spec.clone(), eps_init=1.0, eps_end=1.0, annealing_num_steps=1,
+                                           theta=0.15, sigma=sigma, dt=0.05) for _ in range(count)]
+
+
+def _streams(seeds):
+    import torch
+
+    streams = []
+    for seed in seeds:
+        torch.manual_seed(seed)
+        streams.append(batch.RunRNG())
+    return streams
+
+
+def test_row_exploration_steps_every_acting_row_as_its_run_module_would():
+    """The vector Ornstein-Uhlenbeck step against each run's own torchrl module called on its row: the same
+    actions (clamped into [-1, 1] where the policy's output plus noise leaves it), process states and step
+    counts, bit for bit, over 60 steps with rows that pause (not acting) and restart (is_init)."""
+    import torch
+    from tensordict import TensorDict
+
+    count, seeds = 4, [3, 11, 5, 8]
+    vector = batch.RowExploration(lambda td: td, _noise_modules(count), _streams(seeds))
+    per_row = batch.RowExploration(lambda td: td, _noise_modules(count), _streams(seeds))
+    assert vector.process is not None
+    per_row.process = None  # each row through its run's module
+    data = torch.Generator().manual_seed(0)
+    a = b = None
+    clamped = 0
+    for step in range(60):
+        acting = torch.rand(count, generator=data) < 0.7
+        is_init = (torch.rand(count, 1, generator=data) < 0.1) | (step == 0)
+        action = 1.5 * torch.randn(count, 3, generator=data)  # often outside the box
+        fresh = TensorDict({"action": action, "is_init": is_init, "_acting": acting}, [count])
+        if a is not None:  # the process state travels from step to step, as the collector carries it
+            for key in ("_ou_prev_noise", "_ou_steps"):
+                fresh.set(key, a.get(key))
+        a = vector(fresh.clone())
+        if b is not None:
+            for key in ("_ou_prev_noise", "_ou_steps"):
+                fresh.set(key, b.get(key))
+        b = per_row(fresh.clone())
+        for key in ("action", "_ou_prev_noise", "_ou_steps"):
+            assert torch.equal(a.get(key), b.get(key)), (step, key)
+        assert (a.get("action")[acting].abs() <= 1).all()
+        clamped += int((a.get("action")[acting].abs() == 1).sum())  # on the box's edge: clamped
+        assert torch.equal(a.get("action")[~acting], action[~acting])  # a paused row keeps the policy's action
+    assert clamped > 0  # the clamp was exercised
+    for s in range(count):  # each run's stream has drawn the same numbers
+        assert torch.equal(vector.streams[s].torch, per_row.streams[s].torch)
+
+
+def test_row_exploration_calls_each_module_when_the_runs_processes_differ():
+    noises = _noise_modules(2)
+    noises[1] = _noise_modules(1, sigma=0.3)[0]
+    assert batch.RowExploration(lambda td: td, noises, _streams([0, 1])).process is None
+    assert batch.RowExploration(lambda td: td, _noise_modules(2), _streams([0, 1])).process is not None

@@ -96,20 +96,23 @@ def test_loop_benchmark_command_gives_ratios_and_the_paper_run_projection(tmp_pa
 
 def test_runs_benchmark_command_gives_the_batch_against_separate_processes(tmp_path):
     tiny = ["hidden_sizes=[16,16]", "task.forward_horizon=20", "forward.batch_size=16", "reset.batch_size=16"]
-    report = bench_runs.main(["--runs", "3", "--steps", "160", "--heat-up", "20", "--out", str(tmp_path),
+    report = bench_runs.main(["--runs", "3", "--steps", "160", "--heat-up", "20", "--out", str(tmp_path), "--acting",
                               *[f"--override={o}" for o in tiny]])
     assert sorted(p.suffix for p in tmp_path.iterdir()) == [".json", ".md"]
     separate = report["separate"]["aggregate_steps_per_second"]
     assert separate == pytest.approx(sum(bench_runs.steady_rate(r) for r in report["separate"]["runs"]))
-    assert set(report["batched"]) == {3} and set(report["split"]) == {3}
-    for count, row in report["batched"].items():
-        assert row["runs"] == count and row["steady_iterations"] > 0
-        assert row["ratio_vs_separate"] == pytest.approx(row["run_steps_per_second"] / separate)
-    split = report["split"][3]
-    assert [p["runs"] for p in split["processes"]] == [2, 1]
-    assert split["aggregate_run_steps_per_second"] == pytest.approx(sum(p["run_steps_per_second"] for p in split["processes"]))
+    for layout in ("", "_acting"):  # each runs as it acts alone, then with speed.batched_acting
+        assert set(report["batched" + layout]) == {3} and set(report["split" + layout]) == {3}
+        for count, row in report["batched" + layout].items():
+            assert row["runs"] == count and row["steady_iterations"] > 0
+            assert row["ratio_vs_separate"] == pytest.approx(row["run_steps_per_second"] / separate)
+        split = report["split" + layout][3]
+        assert [p["runs"] for p in split["processes"]] == [2, 1]
+        assert split["aggregate_run_steps_per_second"] == pytest.approx(
+            sum(p["run_steps_per_second"] for p in split["processes"]))
     text = next(tmp_path.glob("*.md")).read_text()
     assert "two processes (2 + 1)" in text and "hidden_sizes=[16,16]" in text and "Table 1 grid" in text
+    assert "3, one process, batched acting" in text and "two processes (2 + 1), batched acting" in text
     assert report["projected_table1_grid"]["hours"] == pytest.approx(
         90 * 1_500_000 / report["projected_table1_grid"]["run_steps_per_second"] / 3600)
 
