@@ -66,17 +66,23 @@ def test_rce_update_flops_match_a_hand_count():
 
 
 def test_update_benchmark_command_writes_its_tables(tmp_path):
-    report = bench_updates.main(["--repeats", "2", "--rounds", "1", "--out", str(tmp_path)])
+    report = bench_updates.main(["--repeats", "2", "--rounds", "1", "--warmup", "1", "--warmup-seconds", "0",
+                                 "--no-compile", "--scaling-members", "5", "20", "--scaling-batches", "256",
+                                 "--out", str(tmp_path)])
     written = sorted(p.suffix for p in tmp_path.iterdir())
     assert written == [".json", ".md"]
     saved = json.loads(next(tmp_path.glob("*.json")).read_text())
-    assert saved["targets"] == report["targets"] and len(saved["scaling"]) == 12
+    assert saved["targets"] == report["targets"]
+    assert [(r["members"], r["batch"]) for r in saved["scaling"]] == [(5, 256), (20, 256)]
+    assert any(t["target"].startswith("K = 20 costs") for t in saved["targets"])
     for row in saved["updates"]:
         rate = saved["matmul_gflops"][row["precision"]] * 1e9
         assert row["flop_limit_ms"] == pytest.approx(1000 * row["flops"] / rate)
         assert row["fraction_of_limit"] == pytest.approx(row["flop_limit_ms"] / row["median_ms"])
         assert 0 < row["min_ms"] <= row["median_ms"]
-    assert "forward DDPG update" in next(tmp_path.glob("*.md")).read_text()
+    text = next(tmp_path.glob("*.md")).read_text()
+    assert "forward DDPG update" in text and "torch.compile" not in text  # --no-compile leaves its row out
+    assert len(saved["updates"]) == 7 + (saved["matmul_precision"] != "ieee")
 
 
 def test_loop_benchmark_command_gives_ratios_and_the_paper_run_projection(tmp_path):
@@ -96,23 +102,23 @@ def test_loop_benchmark_command_gives_ratios_and_the_paper_run_projection(tmp_pa
 
 def test_runs_benchmark_command_gives_the_batch_against_separate_processes(tmp_path):
     tiny = ["hidden_sizes=[16,16]", "task.forward_horizon=20", "forward.batch_size=16", "reset.batch_size=16"]
-    report = bench_runs.main(["--runs", "3", "--steps", "160", "--heat-up", "20", "--out", str(tmp_path), "--acting",
+    report = bench_runs.main(["--runs", "2", "--steps", "120", "--heat-up", "20", "--out", str(tmp_path), "--acting",
                               *[f"--override={o}" for o in tiny]])
     assert sorted(p.suffix for p in tmp_path.iterdir()) == [".json", ".md"]
     separate = report["separate"]["aggregate_steps_per_second"]
     assert separate == pytest.approx(sum(bench_runs.steady_rate(r) for r in report["separate"]["runs"]))
     for layout in ("", "_acting"):  # each runs as it acts alone, then with speed.batched_acting
-        assert set(report["batched" + layout]) == {3} and set(report["split" + layout]) == {3}
+        assert set(report["batched" + layout]) == {2} and set(report["split" + layout]) == {2}
         for count, row in report["batched" + layout].items():
             assert row["runs"] == count and row["steady_iterations"] > 0
             assert row["ratio_vs_separate"] == pytest.approx(row["run_steps_per_second"] / separate)
-        split = report["split" + layout][3]
-        assert [p["runs"] for p in split["processes"]] == [2, 1]
+        split = report["split" + layout][2]
+        assert [p["runs"] for p in split["processes"]] == [1, 1]
         assert split["aggregate_run_steps_per_second"] == pytest.approx(
             sum(p["run_steps_per_second"] for p in split["processes"]))
     text = next(tmp_path.glob("*.md")).read_text()
-    assert "two processes (2 + 1)" in text and "hidden_sizes=[16,16]" in text and "Table 1 grid" in text
-    assert "3, one process, batched acting" in text and "two processes (2 + 1), batched acting" in text
+    assert "two processes (1 + 1)" in text and "hidden_sizes=[16,16]" in text and "Table 1 grid" in text
+    assert "2, one process, batched acting" in text and "two processes (1 + 1), batched acting" in text
     assert report["projected_table1_grid"]["hours"] == pytest.approx(
         90 * 1_500_000 / report["projected_table1_grid"]["run_steps_per_second"] / 3600)
 
