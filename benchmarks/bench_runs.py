@@ -80,10 +80,11 @@ def steady_rate(summary: dict) -> float:
     return 1.0 / (share * times["forward"] + (1.0 - share) * times["reset"])
 
 
-def measure(tmp: Path, count: int, args, overrides: tuple[str, ...], label: str, report: dict) -> list:
+def measure(tmp: Path, count: int, args, overrides: tuple[str, ...], label: str, suffix: str, report: dict) -> list:
     """The batch of ``count`` runs in one process, then (``count`` >= 2, unless ``--no-split``) as two batches
-    of about ``count / 2``, one process per core with one thread each: ``[(row name, entry)]``."""
-    key = "batched" + label.replace(", batched acting", "_acting")
+    of about ``count / 2``, one process per core with one thread each: ``[(row name, entry)]``; the entries go
+    into ``report["batched" + suffix]`` and ``report["split" + suffix]``."""
+    key = "batched" + suffix
     out = tmp / f"{key}{count}"
     started = time.perf_counter()
     wait(run(command(out, args.steps, args.heat_up, args.threads, seeds=count, overrides=overrides)),
@@ -111,7 +112,7 @@ def measure(tmp: Path, count: int, args, overrides: tuple[str, ...], label: str,
     split = {"runs": count, "aggregate_run_steps_per_second": sum(t["run_steps_per_second"] for t in parts),
              "outside_updates_ms_per_run_step": sum(t["outside_updates_ms_per_run_step"] * t["runs"] for t in parts) / count,
              "processes": parts, "wall_seconds": time.perf_counter() - started}
-    report.setdefault("split" + key[len("batched"):], {})[count] = split
+    report.setdefault("split" + suffix, {})[count] = split
     sizes = " + ".join(str(t["runs"]) for t in parts)
     return rows + [(f"{count}, two processes ({sizes}){label}", split)]
 
@@ -147,12 +148,12 @@ def main(argv=None) -> dict:
         report["separate"] = {"aggregate_steps_per_second": separate, "wall_seconds": time.perf_counter() - started,
                               "runs": [{k: s[k] for k in ("seed", "forward_share", "step_seconds", "steps_per_second")}
                                        for s in alone]}
-        layouts = [("", ())] + ([(", batched acting", ("speed.batched_acting=true",))] if args.acting else [])
+        layouts = [("", "", ())] + ([(", batched acting", "_acting", ("speed.batched_acting=true",))] if args.acting else [])
         for count in args.runs:
-            for label, acting in layouts:
+            for label, suffix, acting in layouts:
                 if acting and count < 2:
                     continue
-                rows += measure(tmp, count, args, (*extra, *acting), label, report)
+                rows += measure(tmp, count, args, (*extra, *acting), label, suffix, report)
     lines = [f"# Many runs in one process ({info['date']})", "",
              describe(info, args.threads) + " Batched: one process, "
              f"{args.threads} torch threads; separate: single runs, 1 thread each, two processes at a time.",

@@ -334,12 +334,14 @@ def main(argv=None) -> dict:
             rates[p] = matmul_rate(device=device)
     rows = []
     reset_label = "reset RCE update (K = 5, batch 256 + 256 examples, n = 10)"
+    compile_label = "forward DDPG update (batch 64), torch.compile"
+    stock_label = "forward DDPG update (batch 64), eager, torchrl's DDPGLoss"
     # (label, kind, compiled, products, torchrl's own DDPGLoss, accelerated); the last three rows are the
     # plain reference path of each update (speed.accelerate=false), for the accelerator's gain
     cases = [
         ("forward DDPG update (batch 64), eager", "forward", False, precision, False, True),
-        ("forward DDPG update (batch 64), torch.compile", "forward", True, precision, False, True),
-        ("forward DDPG update (batch 64), eager, torchrl's DDPGLoss", "forward", False, precision, True, True),
+        (compile_label, "forward", True, precision, False, True),
+        (stock_label, "forward", False, precision, True, True),
         (reset_label, "ours", False, precision, False, True),
         ("reset LNT update (K = 20, batch 256)", "lnt", False, precision, False, True),
         ("forward DDPG update (batch 64), reference path", "forward", False, "ieee", False, False),
@@ -378,10 +380,9 @@ def main(argv=None) -> dict:
             scaling.append({"members": members, "batch": batch, **result})
 
     by = {(r["members"], r["batch"]): r["median_ms"] for r in scaling}
-    by_case = {(c[1], c[2], c[4], c[5], c[3]): r for r, c in zip(rows, cases)}
-    forward, ours = rows[0], by_case[("ours", False, False, True, precision)]  # the recipe's defaults: both losses eager
-    compiled = by_case.get(("forward", True, False, True, precision))
-    stock_forward = by_case[("forward", False, True, True, precision)]
+    by_label = {c[0]: r for r, c in zip(rows, cases)}
+    forward, ours = rows[0], by_label[reset_label]  # the recipe's defaults: both losses eager
+    compiled, stock_forward = by_label.get(compile_label), by_label[stock_label]
     lnt = next(r for r, c in zip(rows, cases) if c[1] == "lnt" and c[5])
     reference = {c[1]: r for r, c in zip(rows, cases) if not c[5]}
     gains = {"forward": reference["forward"]["median_ms"] / forward["median_ms"],

@@ -23,6 +23,8 @@ from pathlib import Path
 import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf
+from tensordict.utils import expand_as_right, expand_right
+from torchrl.envs.utils import ExplorationType, exploration_type
 
 from agents import reset_tau
 from config_checks import ConfigError, validate
@@ -277,9 +279,6 @@ class RowExploration:
         return td
 
     def _vector(self, td, rows: list[int]):
-        from tensordict.utils import expand_as_right, expand_right
-        from torchrl.envs.utils import ExplorationType, exploration_type
-
         if exploration_type() not in (ExplorationType.RANDOM, None):
             return td  # the module adds noise only when exploring
         module = self.noises[0]
