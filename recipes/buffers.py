@@ -1,24 +1,111 @@
 """The recipe's replay buffers: what each keeps, and the reset buffer's n-step transform and sampler."""
 from __future__ import annotations
 
+from pathlib import Path
+
+import torch
 from omegaconf import DictConfig, OmegaConf
 from torchrl.data import LazyTensorStorage, ReplayBuffer
 
 from agents import Agent
+from config_checks import arm_count
 from torchrl_reset import EpisodeWindowSampler, NStepStateTransform
 
-__all__ = ["make_buffers", "buffer_keys"]
+__all__ = ["make_buffers", "buffer_keys", "ArmReplay", "sampler_fallbacks", "fallback_counts", "restore_fallbacks"]
 
 
-def make_buffers(cfg: DictConfig) -> tuple[ReplayBuffer, ReplayBuffer]:
+def make_buffers(cfg: DictConfig) -> tuple[ReplayBuffer, ReplayBuffer | ArmReplay]:
+    """The forward agent's buffer and the reset agent's (ours: with the n-step transform and the release's
+    episode-first sampler). With ``arms``, ours' reset buffer is one per arm, sampled as one (:class:`ArmReplay`):
+    the n-step windows need each arm's steps in time order."""
     forward_rb = ReplayBuffer(storage=LazyTensorStorage(cfg.forward.buffer_size), batch_size=cfg.forward.batch_size)
     ours = cfg.algo.name == "ours"
-    transform = NStepStateTransform(cfg.algo.n_steps) if ours else None
     episodes = ours and OmegaConf.select(cfg, "algo.nstep_sampling", default="episode") == "episode"
-    sampler = EpisodeWindowSampler(cfg.algo.n_steps) if episodes else None
-    reset_rb = ReplayBuffer(storage=LazyTensorStorage(cfg.reset.buffer_size), batch_size=cfg.reset.batch_size,
-                            transform=transform, sampler=sampler)
-    return forward_rb, reset_rb
+    arms = arm_count(cfg)
+
+    def reset_buffer(size: int, batch_size: int | None = cfg.reset.batch_size) -> ReplayBuffer:
+        return ReplayBuffer(storage=LazyTensorStorage(size), batch_size=batch_size,
+                            transform=NStepStateTransform(cfg.algo.n_steps) if ours else None,
+                            sampler=EpisodeWindowSampler(cfg.algo.n_steps) if episodes else None)
+
+    if arms is None or not ours:  # LNT's rows are single transitions: one buffer serves every arm
+        return forward_rb, reset_buffer(cfg.reset.buffer_size)
+    size = -(-int(cfg.reset.buffer_size) // arms)  # the arms share the capacity of one run's buffer
+    return forward_rb, ArmReplay([reset_buffer(size, None) for _ in range(arms)], batch_size=cfg.reset.batch_size)
+
+
+def fallback_counts(rb) -> list[int | None]:
+    """Each buffer's sampler fallback count (one per arm of an :class:`ArmReplay`); None without that sampler."""
+    return [getattr(b.sampler, "fallbacks", None) for b in getattr(rb, "buffers", [rb])]
+
+
+def sampler_fallbacks(rb) -> int | None:
+    """How many samples fell back to uniform rows because no episode held a whole n-step window yet
+    (:class:`~torchrl_reset.EpisodeWindowSampler`), summed over an :class:`ArmReplay`'s arms; None without that sampler."""
+    counts = fallback_counts(rb)
+    return None if None in counts else sum(counts)
+
+
+def restore_fallbacks(rb, counts: list[int | None]) -> None:
+    """Sets each buffer's sampler fallback count back (``counts`` from :func:`fallback_counts`)."""
+    for buffer, count in zip(getattr(rb, "buffers", [rb]), counts):
+        if count is not None:
+            buffer.sampler.fallbacks = count
+
+
+
+
+class ArmReplay:
+    """One agent's replay buffer over N arms: each arm's rows in a buffer of its own, sampled as one.
+
+    A row goes to the buffer of its arm (``("collector", "env_ids")``, which :class:`~torchrl_reset.BatchedDualCollector`
+    writes), so each arm's transform sees its steps in time order (the n-step state of
+    :class:`~torchrl_reset.NStepStateTransform`) and each arm's sampler its episodes whole. A sample of B
+    rows splits B over the arms in proportion to the rows they hold (one multinomial draw; none with
+    one arm, which then samples exactly as a single buffer), and each arm draws its share by its own
+    sampler: uniform rows over all arms with uniform samplers; episodes first, then a window, within
+    an arm with :class:`~torchrl_reset.EpisodeWindowSampler`. ``dumps`` / ``loads`` save every arm's
+    buffer in ``arm<i>/``.
+    """
+
+    def __init__(self, buffers: list[ReplayBuffer], *, batch_size: int) -> None:
+        if not buffers:
+            raise ValueError("ArmReplay needs one buffer per arm, got none.")
+        self.buffers, self.batch_size = list(buffers), int(batch_size)
+
+    def __len__(self) -> int:
+        return sum(len(b) for b in self.buffers)
+
+    def extend(self, data) -> None:
+        arms = data.get(("collector", "env_ids"), None)
+        if arms is None:
+            raise KeyError("ArmReplay routes rows by their arm: the data need ('collector', 'env_ids').")
+        arms = arms.reshape(-1)
+        for arm in arms.unique().tolist():
+            if not 0 <= arm < len(self.buffers):
+                raise IndexError(f"a row of arm {arm} for an ArmReplay of {len(self.buffers)} arms.")
+            self.buffers[arm].extend(data[arms == arm])
+
+    def sample(self, batch_size: int | None = None):
+        size = self.batch_size if batch_size is None else int(batch_size)
+        if len(self.buffers) == 1:
+            return self.buffers[0].sample(size)
+        held = torch.tensor([len(b) for b in self.buffers], dtype=torch.float64)
+        if not held.sum():
+            raise RuntimeError("ArmReplay: cannot sample from empty buffers.")
+        shares = torch.bincount(torch.multinomial(held, size, replacement=True), minlength=len(self.buffers))
+        return torch.cat([b.sample(int(k)) for b, k in zip(self.buffers, shares.tolist()) if k], 0)
+
+    def dumps(self, path) -> None:
+        Path(path).mkdir(parents=True, exist_ok=True)
+        for i, buffer in enumerate(self.buffers):
+            if len(buffer):  # torchrl cannot dump a buffer that never received data
+                buffer.dumps(Path(path) / f"arm{i}")
+
+    def loads(self, path) -> None:
+        for i, buffer in enumerate(self.buffers):
+            if (Path(path) / f"arm{i}").exists():
+                buffer.loads(Path(path) / f"arm{i}")
 
 
 def buffer_keys(cfg: DictConfig, forward: Agent, reset: Agent) -> tuple[list, list]:
@@ -35,6 +122,8 @@ def buffer_keys(cfg: DictConfig, forward: Agent, reset: Agent) -> tuple[list, li
     reset_keys = [*states, *[("next", *key) for key in states], ("action",), ("next", "done"), ("next", "terminated")]
     if cfg.algo.name == "ours":
         reset_keys.append(("collector", "traj_ids"))  # NStepStateTransform's trajectory boundaries
+        if arm_count(cfg) is not None:
+            reset_keys.append(("collector", "env_ids"))  # ArmReplay's routing
     else:
         reset_keys += [("next", "reset_reward"), ("next", "reset_success")]  # lnt_batch's rewards
     forward_keys = [nested(key) for key in forward.loss.in_keys]

@@ -11,7 +11,7 @@ from torchrl_reset.accel import MATMUL_PRECISIONS
 from run_files import Checkpoints
 from torchrl_reset_envs import TASKS
 
-__all__ = ["ALGOS", "ConfigError", "reset_horizon", "validate", "should_resume", "torch_threads"]
+__all__ = ["ALGOS", "ConfigError", "arm_count", "reset_horizon", "validate", "should_resume", "torch_threads"]
 
 
 ALGOS = ("ours", "lnt", "lnt_sparse")
@@ -19,6 +19,11 @@ ALGOS = ("ours", "lnt", "lnt_sparse")
 
 class ConfigError(ValueError):
     """A configuration that cannot run; raised before anything is built."""
+
+
+def arm_count(cfg: DictConfig) -> int | None:
+    """``arms``: None for one environment, or N: one agent pair over N copies of the task (one run)."""
+    return OmegaConf.select(cfg, "arms", default=None)
 
 
 def reset_horizon(cfg: DictConfig) -> int:
@@ -65,6 +70,16 @@ def validate(cfg: DictConfig) -> None:
         problems.append(f"speed.compile must be a list of agents among forward, reset; got {compile_agents!r}")
     if int(cfg.heat_up) < 0:
         problems.append(f"heat_up must be >= 0, got {cfg.heat_up}")
+    arms = arm_count(cfg)
+    if arms is not None:
+        if isinstance(arms, bool) or not isinstance(arms, int) or arms < 1:
+            problems.append(f"arms must be a positive integer (the number of environments one agent pair learns on), "
+                            f"got {arms!r}")
+        if OmegaConf.select(cfg, "seeds", default=None) is not None or OmegaConf.select(cfg, "vary", default=None):
+            problems.append("arms (one agent pair over N environments) and seeds / vary (independent runs in one "
+                            "process) cannot be combined")
+        if cfg.task.name.startswith("ur3_") or env:
+            problems.append("arms runs N simulated copies of a task; a UR3 arm is one env (env.* options are not taken)")
     if problems:
         raise ConfigError("invalid configuration:\n  - " + "\n  - ".join(problems))
     checkpoints = Checkpoints(Path(cfg.run_dir) / "checkpoints", keep=int(cfg.keep_checkpoints))
@@ -75,8 +90,8 @@ def validate(cfg: DictConfig) -> None:
         if latest is None:
             raise ConfigError(f"resume=true but {checkpoints.root} holds no complete checkpoint to resume from.")
         meta = json.loads((latest / "meta.json").read_text())
-        for key, value in (("task", cfg.task.name), ("algo", cfg.algo.name)):
-            if meta[key] != value:
+        for key, value in (("task", cfg.task.name), ("algo", cfg.algo.name), ("arms", arm_count(cfg))):
+            if meta.get(key) != value:
                 raise ConfigError(
                     f"the checkpoint in {latest} is from {key} {meta[key]!r}, this run is {key} {value!r}; "
                     "use another run_dir or the matching task and algo."

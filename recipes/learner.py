@@ -7,23 +7,31 @@ update once it is past its heat-up (lines 16 and 23).
 from __future__ import annotations
 
 import time
+from functools import partial
 
 import torch
 from omegaconf import DictConfig
 
 from agents import Agent, lnt_batch, with_exploration
-from buffers import buffer_keys
-from config_checks import reset_horizon
+from buffers import buffer_keys, sampler_fallbacks
+from config_checks import arm_count, reset_horizon
 from task_envs import UpdateBudget
-from torchrl_reset import DualCollector
+from torchrl_reset import BatchedDualCollector, DualCollector
+from torchrl_reset.batched_collector import PooledCollector
 from torchrl_reset.accel import matmul_products
 
 __all__ = ["make_collector", "Learner", "NonFiniteLoss"]
 
 
-def make_collector(cfg: DictConfig, env, forward: Agent, reset: Agent) -> DualCollector:
-    """Forward and reset episodes over ``env``, with the paper's OU exploration on both policies."""
-    collector = DualCollector(
+def make_collector(cfg: DictConfig, env, forward: Agent, reset: Agent) -> DualCollector | PooledCollector:
+    """Forward and reset episodes over ``env``, with the paper's OU exploration on both policies.
+
+    With ``arms``: one :class:`~torchrl_reset.BatchedDualCollector` over the N copies, each in its own
+    phase, one example buffer for all, seen as one run's collector (its ``pooled()`` view); copy ``i``
+    is seeded ``seed + i``."""
+    arms = arm_count(cfg)
+    loop = DualCollector if arms is None else partial(BatchedDualCollector, shared_examples=True)
+    collector = loop(
         env,
         with_exploration(forward.actor, env.action_spec, cfg),
         with_exploration(reset.actor, env.action_spec, cfg),
@@ -33,7 +41,7 @@ def make_collector(cfg: DictConfig, env, forward: Agent, reset: Agent) -> DualCo
         total_frames=int(cfg.total_steps),
     )
     collector.set_seed(int(cfg.seed))
-    return collector
+    return collector if arms is None else collector.pooled()
 
 
 class NonFiniteLoss(RuntimeError):
@@ -64,10 +72,15 @@ class Learner:
         self.last_losses: dict[str, float] = {} if last_losses is None else last_losses  # the latest of each loss
 
     def observe(self, batch, phase: str) -> None:
-        """Lines 16 (forward) and 23 (reset): store the transition, then update that agent."""
+        """Lines 16 (forward) and 23 (reset): store the transition, then update that agent. A batch of
+        several steps (N arms, each stepped once) is stored at once and updates the agent once per step,
+        each update on a sample of its own."""
         sample = self.store(batch, phase)
-        if sample is not None:
+        for _ in range(batch.numel() if sample is not None else 0):
+            if sample is None:
+                sample = self.forward_rb.sample() if phase == "forward" else self._reset_sample()
             self.record_losses(phase, self._update(phase, sample, self.loss_names(phase)))
+            sample = None
 
     def store(self, batch, phase: str):
         """Stores the transition in its phase's buffer; returns that agent's update batch when it updates
@@ -91,10 +104,9 @@ class Learner:
 
     def _reset_sample(self):
         """The reset agent's batch: ours, replay rows and as many success examples; LNT, its rewards."""
-        sampler = self.reset_rb.sampler
-        fallbacks = getattr(sampler, "fallbacks", 0)
+        fallbacks = sampler_fallbacks(self.reset_rb)
         sample = self.reset_rb.sample().to(self.cfg.device)
-        if getattr(sampler, "fallbacks", 0) > fallbacks:
+        if fallbacks is not None and sampler_fallbacks(self.reset_rb) > fallbacks:
             # no reset episode has n transitions yet: the release uses the one-step label
             sample.set("one_step", torch.ones(sample.shape[0], dtype=torch.bool, device=sample.device))
         if self.ours:

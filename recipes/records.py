@@ -18,6 +18,7 @@ import torchrl
 from omegaconf import DictConfig, OmegaConf
 from tqdm import tqdm
 
+from buffers import fallback_counts, restore_fallbacks
 from diagnostics import DIAGNOSTIC_FIELDS, RESET_FIELDS, ResetDistances, TriggerScores, probe_classifier
 from run_files import CsvTable, code_version, success_rate_by_quarter
 from task_envs import safety_counters
@@ -142,12 +143,12 @@ class RunRecord:
         }
         self.progress.append(row)
         reset_rb = learner.reset_rb
-        fallbacks = getattr(reset_rb.sampler, "fallbacks", "")
+        counts = fallback_counts(reset_rb)
         with torch.random.fork_rng(devices=[]):  # the probe's samples leave training's random stream as it was
             probe = probe_classifier(self.cfg.algo.name, learner.reset.model, learner.reset.actor,
                                      self.collector.example_buffer, learner.forward_rb, reset_rb, self.trigger.threshold)
-        if fallbacks != "":
-            reset_rb.sampler.fallbacks = fallbacks  # the probe's own sample does not count
+        restore_fallbacks(reset_rb, counts)  # the probe's own sample does not count
+        fallbacks = "" if None in counts else sum(counts)
         self.diagnostics.append({"frames": frames, **self.trigger_scores.row(), **probe, "sampler_fallbacks": fallbacks})
         for logger in self.loggers:
             logger.log_metrics({k: v for k, v in row.items() if k != "frames" and not _isnan(v)}, step=frames)

@@ -14,6 +14,7 @@ from typing import Callable
 
 import numpy as np
 import torch
+from omegaconf import OmegaConf
 
 __all__ = ["RunFolderBusy", "run_folder_lock", "code_version", "Checkpoints", "TrainingState", "stop_on_sigterm",
            "success_rate_by_quarter", "CsvTable"]
@@ -91,7 +92,8 @@ class TrainingState:
     def save(self) -> Path:
         """A complete checkpoint at the collector's step (crash-safe: see :class:`Checkpoints`)."""
         cfg = self.cfg
-        meta = {"task": cfg.task.name, "algo": cfg.algo.name, "seed": int(cfg.seed), "frames": self.collector.frames}
+        meta = {"task": cfg.task.name, "algo": cfg.algo.name, "seed": int(cfg.seed), "frames": self.collector.frames,
+                "arms": OmegaConf.select(cfg, "arms", default=None)}
         if self.before_save is not None:
             self.before_save()
         return self.checkpoints.save(self.collector.frames, self._write, meta)

@@ -5,6 +5,7 @@
     python recipes/train.py task=cliff_cheetah algo=lnt preset=quick resume=true  # continue a killed run
     python recipes/train.py -m task=peg_insertion_insert algo=ours,lnt,lnt_sparse seed=0,1,2  # a grid, in parallel
     python recipes/train.py task=peg_insertion_insert algo=ours seeds=5  # seeds 0-4 in one process, updates batched
+    python recipes/train.py task=peg_insertion_insert algo=ours arms=4   # one agent pair over 4 copies of the task
     python recipes/train.py task=cliff_cheetah algo=ours seeds=3 vary=task.p_thresh vary_values=[0.1,0.3] \
         run_dir='runs/${task.name}/${algo.name}/p${task.p_thresh}/seed${seed}'  # Fig. 4: 6 runs in one process
 
@@ -36,13 +37,13 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from agents import make_forward_agent, make_reset_agent  # noqa: E402
 from batch import batch_runs, run_configs, train_batch  # noqa: E402
 from buffers import make_buffers  # noqa: E402
-from config_checks import ConfigError, reset_horizon, should_resume, torch_threads, validate  # noqa: E402
+from config_checks import ConfigError, arm_count, reset_horizon, should_resume, torch_threads, validate  # noqa: E402
 from learner import Learner, NonFiniteLoss, make_collector  # noqa: E402
 from records import RunRecord  # noqa: E402
 from run_files import Checkpoints, RunFolderBusy, TrainingState, run_folder_lock, stop_on_sigterm  # noqa: E402
 from task_envs import EVAL_SEED_OFFSET, evaluate, make_task_env, realtime_env, task_dimensions  # noqa: E402
 
-from torchrl_reset import DualCollector  # noqa: E402
+from torchrl_reset import DualCollector, split_phases  # noqa: E402
 from torchrl_reset.accel import choose_matmul_precision, retain_freed_memory  # noqa: E402
 from torchrl_reset_envs.ur3_backends import RobotFault  # noqa: E402
 
@@ -116,14 +117,22 @@ class Run:
 
     def after_step(self, batch, phase: str) -> None:
         """The step's record, then the evaluation, log row and checkpoint that fall on this step."""
-        cfg = self.cfg
         self.record.step(batch, phase)
-        frames = self.collector.frames
-        if frames % int(cfg.eval_every) == 0:
+        self.after_frames(self.collector.frames - batch.numel())
+
+    def after_frames(self, before: int) -> None:
+        """The evaluation, log row and checkpoint due since step ``before`` (one step earlier for a run on
+        one env; with N arms an iteration takes up to N steps and may pass a multiple of ``eval_every``)."""
+        cfg, frames = self.cfg, self.collector.frames
+
+        def due(every) -> bool:
+            return frames // int(every) > before // int(every)
+
+        if due(cfg.eval_every):
             self.record.evaluation(self.evaluation())
-        if frames % int(cfg.log_every) == 0:
+        if due(cfg.log_every):
             self.record.log(self.learner, self.env)
-        if frames % int(cfg.checkpoint_every) == 0:
+        if due(cfg.checkpoint_every):
             self.checkpoint()
 
     def adopt(self, collector) -> None:
@@ -183,7 +192,7 @@ def build_run(cfg: DictConfig, matmul_precision: str) -> Run:
 def _train(cfg: DictConfig) -> dict:
     validate(cfg)
     run = build_run(cfg, set_up_process(cfg))
-    collector = run.collector
+    collector, arms = run.collector, arm_count(cfg)
 
     # Algorithm 1, lines 5-28: each batch is one action of a forward or a reset episode
     interrupted = False
@@ -191,9 +200,12 @@ def _train(cfg: DictConfig) -> dict:
         with stop_on_sigterm() as stop_requested:
             for batch in collector:
                 batch = batch.to(cfg.device)
-                phase = DualCollector.phase_of(batch)
-                run.learner.observe(batch, phase)  # lines 16 / 23: store the transition, update that agent
-                run.after_step(batch, phase)
+                # one step; with N arms, the steps of one iteration (up to one per arm), by phase
+                parts = split_phases(batch).items() if arms else [(DualCollector.phase_of(batch), batch)]
+                for phase, part in parts:
+                    run.learner.observe(part, phase)  # lines 16 / 23: store the transition, update that agent
+                    run.record.step(part, phase)
+                run.after_frames(collector.frames - batch.numel())
                 if stop_requested:
                     interrupted = True
                     log.warning("SIGTERM at step %d: checkpointing", collector.frames)
@@ -212,7 +224,7 @@ def _train(cfg: DictConfig) -> dict:
         raise RobotStopped(f"{err} The run is checkpointed in {path}; resume=true continues it.") from err
     finally:
         run.record.close()
-    return run.finish(interrupted)
+    return run.finish(interrupted, extra=None if arms is None else {"arms": arms})
 
 
 @hydra.main(version_base="1.3", config_path="conf", config_name="config")

@@ -265,3 +265,21 @@ def test_trigger_rows_off_never_fire_and_restart_their_smoothing():
     assert np.isnan(t._smoothed[0].item()) and not np.isnan(t._smoothed[2].item())
     with pytest.raises(TypeError, match="boolean mask"):
         t.set_enabled(torch.ones(3))
+
+
+def test_the_pooled_view_is_one_run_over_the_copies_and_ends_with_the_iteration_that_reaches_the_budget(start_joints):
+    collector = batched(start_joints, None, shared_examples=True, total_frames=301)
+    view = collector.pooled()
+    stepped = 0
+    for batch in view:
+        stepped += batch.shape[0]
+        for event in view.pop_events():  # the run's step count when the episode ended, not the copy's
+            assert event["frame"] == collector.frames
+    # the iteration that reaches 301 is completed: at most 3 - 1 steps past it
+    assert stepped == collector.frames == view.frames and 301 <= stepped <= 303
+    copies = collector.env_metrics()
+    assert view.counters == {k: sum(m[k] for m in copies) for k in view.counters}
+    assert view.forward_share == view.counters["forward_steps"] / stepped
+    assert view.example_buffer is collector.example_buffers[0]
+    with pytest.raises(ValueError, match="independent runs"):
+        batched(start_joints, 10).pooled()

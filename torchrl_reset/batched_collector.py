@@ -17,7 +17,7 @@ from .collector import (COUNTERS, FORWARD, PHASE_NAMES, RESET, _state_owner, che
                         stopped_scores)
 from .example_buffer import InitialStateBuffer
 
-__all__ = ["BatchedDualCollector", "CollectorCopy", "split_phases"]
+__all__ = ["BatchedDualCollector", "CollectorCopy", "PooledCollector", "split_phases"]
 
 
 def split_phases(batch: TensorDictBase) -> dict[str, TensorDictBase]:
@@ -93,6 +93,8 @@ class BatchedDualCollector(BaseCollector):
         max_forward_steps, max_reset_steps, min_reset_steps, reset_success_key, trigger_key, init_key,
         exploration_type, max_events: as :class:`~torchrl_reset.DualCollector`.
         total_frames (int): executed steps of all copies together after which iteration stops; -1 (default) never.
+            The iteration that reaches it is completed (up to N - 1 steps past it), so that a run
+            continued from there takes the same iterations as one that never stopped.
         max_frames_per_env (int or sequence of int, optional): a copy that executed this many steps (its
             own budget, when one per copy is given) stops: its row is neither stepped nor scored;
             iteration ends when every copy stopped.
@@ -210,7 +212,9 @@ class BatchedDualCollector(BaseCollector):
         if len(self._events) < self.max_events:
             keys = self.example_buffers[0].state_keys
             event = {"env": i, "phase": PHASE_NAMES[int(self._phase[i])], "outcome": outcome,
-                     "steps": int(self._phase_steps[i]), "frame": int(self.frames_per_env[i]),
+                     "steps": int(self._phase_steps[i]),
+                     # one run's step count: the copy's own, or every copy's together when they are one run
+                     "frame": self._frames if self.shared_examples else int(self.frames_per_env[i]),
                      "state": state.select(*keys).clone()}
             if scored is not None and self.triggers:
                 event["scores"] = stopped_scores(self.triggers, scored)
@@ -418,6 +422,13 @@ class BatchedDualCollector(BaseCollector):
             raise IndexError(f"copy index {i!r} out of range for {self.num_envs} copies.")
         return CollectorCopy(self, i)
 
+    def pooled(self) -> PooledCollector:
+        """The copies seen as one run's collector (one agent pair over N environments, shared examples only)."""
+        if not self.shared_examples:
+            raise ValueError("pooled() views the copies as one run; with an example buffer per copy they are "
+                             "independent runs: use copy(i).")
+        return PooledCollector(self)
+
     # --------------------------------------------------------- state / seeding
     def set_seed(self, seed: int, static_seed: bool = False) -> int:
         torch.manual_seed(seed)
@@ -583,3 +594,63 @@ class CollectorCopy:
         smoothing = list(state_dict.get("trigger_smoothing") or [])
         c._pending[i] = ({"td": state_dict["td"], "env_state": state_dict["env_state"]},
                          smoothing + [None] * (len(c.triggers) - len(smoothing)))
+
+
+class PooledCollector:
+    """All copies of a :class:`BatchedDualCollector` with a shared example buffer seen as one run's collector.
+
+    One agent pair over N environments (N arms in one cell) is one run: its ``counters`` are the
+    copies' sums, ``frames`` counts every copy's executed steps, ``example_buffer`` is the shared one
+    and :meth:`pop_events` gives every copy's events (each with its copy under ``env`` and ``frame``
+    the run's step count). It reads like :class:`~torchrl_reset.DualCollector` for the code that keeps
+    one run's records and checkpoints; iterating it iterates the batched collector (each batch holds
+    the executed steps of one iteration, tagged with their copy). :meth:`state_dict` is the batched
+    collector's."""
+
+    def __init__(self, collector: BatchedDualCollector) -> None:
+        self.collector = collector
+
+    def __iter__(self) -> Iterator[TensorDictBase]:
+        return iter(self.collector)
+
+    @property
+    def counters(self) -> dict[str, int]:
+        return {k: int(v.sum()) for k, v in self.collector.counters.items()}
+
+    @property
+    def frames(self) -> int:
+        return self.collector.frames
+
+    def metrics(self) -> dict[str, float]:
+        return self.collector.metrics()
+
+    @property
+    def forward_share(self) -> float:
+        return self.metrics()["forward_share"]
+
+    @property
+    def reset_success_rate(self) -> float:
+        return self.metrics()["reset_success_rate"]
+
+    @property
+    def example_buffer(self) -> InitialStateBuffer:
+        return self.collector.example_buffers[0]
+
+    @property
+    def triggers(self) -> list:
+        return self.collector.triggers
+
+    def pop_events(self) -> list[dict]:
+        return self.collector.pop_events()
+
+    def state_dict(self) -> OrderedDict:
+        return self.collector.state_dict()
+
+    def load_state_dict(self, state_dict: OrderedDict) -> None:
+        self.collector.load_state_dict(state_dict)
+
+    def set_seed(self, seed: int, static_seed: bool = False) -> int:
+        return self.collector.set_seed(seed, static_seed=static_seed)
+
+    def shutdown(self, *args, **kwargs) -> None:
+        self.collector.shutdown(*args, **kwargs)
