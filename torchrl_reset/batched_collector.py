@@ -488,32 +488,15 @@ class BatchedDualCollector(BaseCollector):
                 f"H_r={self.max_reset_steps}, frames={self._frames}, phases={self.phases})")
 
 
-class CollectorCopy:
-    """One copy of a :class:`BatchedDualCollector` seen as a single run's collector.
+class _RunView:
+    """What a one-run view of a :class:`BatchedDualCollector` derives from its ``counters``."""
 
-    It reads like :class:`~torchrl_reset.DualCollector` for the code that keeps one run's records
-    and checkpoints: ``counters``, ``frames``, ``phase``, ``forward_share``, ``reset_success_rate``,
-    :meth:`metrics`, ``example_buffer``, :meth:`pop_events` (this copy's events), and
-    :meth:`state_dict` / :meth:`load_state_dict` in :class:`~torchrl_reset.DualCollector`'s format,
-    so a run checkpointed alone continues in a batch and the other way round. A saved state is
-    loaded before the batch's first iteration (the env is reset then, and the copy continues from
-    its saved simulator state); ``rng_state`` is torch's global generator state, saved from and
-    loaded into whatever stream is current when the call is made (the caller's run's own)."""
-
-    def __init__(self, collector: BatchedDualCollector, index: int) -> None:
-        self.collector, self.index = collector, index
+    def __init__(self, collector: BatchedDualCollector) -> None:
+        self.collector = collector
 
     @property
     def counters(self) -> dict[str, int]:
-        return {k: int(v[self.index]) for k, v in self.collector.counters.items()}
-
-    @property
-    def frames(self) -> int:
-        return int(self.collector.frames_per_env[self.index])
-
-    @property
-    def phase(self) -> str:
-        return PHASE_NAMES[int(self.collector._phase[self.index])]
+        raise NotImplementedError
 
     def metrics(self) -> dict[str, float]:
         return self.collector._with_rates(self.counters)
@@ -527,12 +510,41 @@ class CollectorCopy:
         return self.metrics()["reset_success_rate"]
 
     @property
-    def example_buffer(self) -> InitialStateBuffer:
-        return self.collector.example_buffers[self.index]
-
-    @property
     def triggers(self) -> list:
         return self.collector.triggers
+
+
+class CollectorCopy(_RunView):
+    """One copy of a :class:`BatchedDualCollector` seen as a single run's collector.
+
+    It reads like :class:`~torchrl_reset.DualCollector` for the code that keeps one run's records
+    and checkpoints: ``counters``, ``frames``, ``phase``, ``forward_share``, ``reset_success_rate``,
+    :meth:`metrics`, ``example_buffer``, :meth:`pop_events` (this copy's events), and
+    :meth:`state_dict` / :meth:`load_state_dict` in :class:`~torchrl_reset.DualCollector`'s format,
+    so a run checkpointed alone continues in a batch and the other way round. A saved state is
+    loaded before the batch's first iteration (the env is reset then, and the copy continues from
+    its saved simulator state); ``rng_state`` is torch's global generator state, saved from and
+    loaded into whatever stream is current when the call is made (the caller's run's own)."""
+
+    def __init__(self, collector: BatchedDualCollector, index: int) -> None:
+        super().__init__(collector)
+        self.index = index
+
+    @property
+    def counters(self) -> dict[str, int]:
+        return {k: int(v[self.index]) for k, v in self.collector.counters.items()}
+
+    @property
+    def frames(self) -> int:
+        return int(self.collector.frames_per_env[self.index])
+
+    @property
+    def phase(self) -> str:
+        return PHASE_NAMES[int(self.collector._phase[self.index])]
+
+    @property
+    def example_buffer(self) -> InitialStateBuffer:
+        return self.collector.example_buffers[self.index]
 
     def shutdown(self, *args, **kwargs) -> None:
         """A copy closes nothing: the batch's env is closed with the batch (:meth:`BatchedDualCollector.shutdown`)."""
@@ -596,7 +608,7 @@ class CollectorCopy:
                          smoothing + [None] * (len(c.triggers) - len(smoothing)))
 
 
-class PooledCollector:
+class PooledCollector(_RunView):
     """All copies of a :class:`BatchedDualCollector` with a shared example buffer seen as one run's collector.
 
     One agent pair over N environments (N arms in one cell) is one run: its ``counters`` are the
@@ -606,9 +618,6 @@ class PooledCollector:
     one run's records and checkpoints; iterating it iterates the batched collector (each batch holds
     the executed steps of one iteration, tagged with their copy). :meth:`state_dict` is the batched
     collector's."""
-
-    def __init__(self, collector: BatchedDualCollector) -> None:
-        self.collector = collector
 
     def __iter__(self) -> Iterator[TensorDictBase]:
         return iter(self.collector)
@@ -621,24 +630,9 @@ class PooledCollector:
     def frames(self) -> int:
         return self.collector.frames
 
-    def metrics(self) -> dict[str, float]:
-        return self.collector.metrics()
-
-    @property
-    def forward_share(self) -> float:
-        return self.metrics()["forward_share"]
-
-    @property
-    def reset_success_rate(self) -> float:
-        return self.metrics()["reset_success_rate"]
-
     @property
     def example_buffer(self) -> InitialStateBuffer:
         return self.collector.example_buffers[0]
-
-    @property
-    def triggers(self) -> list:
-        return self.collector.triggers
 
     def pop_events(self) -> list[dict]:
         return self.collector.pop_events()
