@@ -53,8 +53,6 @@ def restore_fallbacks(rb, counts: list[int | None]) -> None:
             buffer.sampler.fallbacks = count
 
 
-
-
 class ArmReplay:
     """One agent's replay buffer over N arms: each arm's rows in a buffer of its own, sampled as one.
 

@@ -93,7 +93,7 @@ def validate(cfg: DictConfig) -> None:
         for key, value in (("task", cfg.task.name), ("algo", cfg.algo.name), ("arms", arm_count(cfg))):
             if meta.get(key) != value:
                 raise ConfigError(
-                    f"the checkpoint in {latest} is from {key} {meta[key]!r}, this run is {key} {value!r}; "
+                    f"the checkpoint in {latest} is from {key} {meta.get(key)!r}, this run is {key} {value!r}; "
                     "use another run_dir or the matching task and algo."
                 )
     elif latest is not None:

@@ -76,11 +76,12 @@ class Learner:
         several steps (N arms, each stepped once) is stored at once and updates the agent once per step,
         each update on a sample of its own."""
         sample = self.store(batch, phase)
-        for _ in range(batch.numel() if sample is not None else 0):
-            if sample is None:
-                sample = self.forward_rb.sample() if phase == "forward" else self._reset_sample()
+        if sample is None:
+            return
+        for update in range(batch.numel()):
+            if update:
+                sample = self._sample(phase)
             self.record_losses(phase, self._update(phase, sample, self.loss_names(phase)))
-            sample = None
 
     def store(self, batch, phase: str):
         """Stores the transition in its phase's buffer; returns that agent's update batch when it updates
@@ -88,9 +89,12 @@ class Learner:
         updating = self.collector.counters[f"{phase}_steps"] > self.heat_up
         if phase == "forward":
             self.forward_rb.extend(batch.select(*self.forward_keys, strict=False))
-            return self.forward_rb.sample() if updating and self._fits("forward") else None
-        self.reset_rb.extend(batch.select(*self.reset_keys, strict=False))
-        return self._reset_sample() if updating and self._fits("reset") else None
+        else:
+            self.reset_rb.extend(batch.select(*self.reset_keys, strict=False))
+        return self._sample(phase) if updating and self._fits(phase) else None
+
+    def _sample(self, phase: str):
+        return self.forward_rb.sample() if phase == "forward" else self._reset_sample()
 
     def loss_names(self, phase: str) -> tuple[str, str]:
         """The loss entries that agent ``phase`` sums and minimises (the actor's first)."""
