@@ -244,15 +244,7 @@ def matmul_rate(seconds: float = 1.0, n: int = 1024, device="cpu") -> float:
 
 
 def machine(device="cpu") -> dict:
-    cpu = platform.processor() or platform.machine()
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    info = {"cpu": cpu, "cores": os.cpu_count(), "torch_threads": torch.get_num_threads(), "python": platform.python_version(),
+    info = {"cpu": train_utils.processor_name(), "cores": os.cpu_count(), "torch_threads": torch.get_num_threads(), "python": platform.python_version(),
             "torch": torch.__version__, "torchrl": torchrl.__version__, "date": datetime.now(timezone.utc).isoformat(timespec="seconds"),
             "device": str(device)}
     if torch.device(device).type == "cuda":

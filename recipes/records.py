@@ -20,7 +20,7 @@ from tqdm import tqdm
 
 from buffers import fallback_counts, restore_fallbacks
 from diagnostics import DIAGNOSTIC_FIELDS, RESET_FIELDS, ResetDistances, TriggerScores, probe_classifier
-from run_files import CsvTable, code_version, success_rate_by_quarter
+from run_files import CsvTable, code_version, processor_name, success_rate_by_quarter
 from task_envs import safety_counters
 
 __all__ = ["PROGRESS_FIELDS", "EVAL_FIELDS", "TRIGGER_FIELDS", "RunRecord", "make_loggers"]
@@ -189,7 +189,7 @@ class RunRecord:
             "seconds": round(history["elapsed"], 1),
             "steps_per_second": round(collector.frames / max(history["elapsed"], 1e-9), 1),
             "step_seconds": {name: (total / count if count else None) for name, (total, count) in self.step_time.items()},
-            "device": str(cfg.device), "matmul_precision": matmul_precision, **self.code,
+            "device": str(cfg.device), "processor": processor_name(), "matmul_precision": matmul_precision, **self.code,
             "torch": torch.__version__, "torchrl": torchrl.__version__, **(extra or {}),
         }
         (self.run_dir / "summary.json").write_text(json.dumps(summary, indent=2, default=_json_default))

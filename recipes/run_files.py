@@ -4,6 +4,7 @@ from __future__ import annotations
 import csv
 import json
 import os
+import platform
 import random
 import shutil
 import signal
@@ -16,7 +17,7 @@ import numpy as np
 import torch
 from omegaconf import OmegaConf
 
-__all__ = ["RunFolderBusy", "run_folder_lock", "code_version", "Checkpoints", "TrainingState", "stop_on_sigterm",
+__all__ = ["RunFolderBusy", "run_folder_lock", "code_version", "processor_name", "Checkpoints", "TrainingState", "stop_on_sigterm",
            "success_rate_by_quarter", "CsvTable"]
 
 
@@ -31,6 +32,26 @@ def code_version() -> dict:
     except (OSError, subprocess.SubprocessError):
         return {"commit": None, "modified": None}
     return {"commit": commit, "modified": bool(status)}
+
+
+def processor_name(cpuinfo: Path = Path("/proc/cpuinfo")) -> str:
+    """The processor's model name and its widest vector extension (``/proc/cpuinfo`` on Linux), such as
+    ``"AMD EPYC, AVX2"``: a run is reproducible bit for bit on one kind of processor only, since the
+    float rounding of the products differs between kinds."""
+    name, flags = platform.processor() or platform.machine(), set()
+    try:
+        for line in Path(cpuinfo).read_text().splitlines():
+            if line.startswith("model name"):
+                name = line.split(":", 1)[1].strip()
+            elif line.startswith("flags"):
+                flags = set(line.split(":", 1)[1].split())
+            if flags and name:
+                break
+    except OSError:
+        pass
+    widest = next((label for flag, label in (("avx512_bf16", "AVX-512 BF16"), ("avx512f", "AVX-512"), ("avx2", "AVX2"))
+                   if flag in flags), None)
+    return f"{name}, {widest}" if widest else name
 
 
 class Checkpoints:

@@ -433,3 +433,14 @@ def test_a_robot_fault_stops_the_run_after_a_checkpoint(tmp_path, monkeypatch):
     latest = train_utils.Checkpoints(tmp_path / "checkpoints").latest()
     assert int(json.loads((latest / "meta.json").read_text())["frames"]) == 120  # every step taken is kept
     assert int(rows(tmp_path / "progress.csv")[-1]["frames"]) == 100
+
+
+def test_the_summary_names_the_processor_kind_a_run_reproduces_on(tmp_path):
+    info = tmp_path / "cpuinfo"
+    info.write_text("processor\t: 0\nmodel name\t: AMD EPYC\nflags\t\t: fpu sse2 avx2 avx512f avx512_bf16\n\n"
+                    "processor\t: 1\nmodel name\t: AMD EPYC\nflags\t\t: fpu sse2 avx2 avx512f avx512_bf16\n")
+    assert train_utils.processor_name(info) == "AMD EPYC, AVX-512 BF16"
+    info.write_text("model name\t: Intel(R) Xeon(R) Processor\nflags\t\t: fpu sse2 avx2\n")
+    assert train_utils.processor_name(info) == "Intel(R) Xeon(R) Processor, AVX2"
+    info.write_text("model name\t: Some CPU\nflags\t\t: fpu sse2\n")
+    assert train_utils.processor_name(info) == "Some CPU"
