@@ -336,14 +336,25 @@ def _save(fig, path: Path, written: list[Path]) -> None:
     written.append(path)
 
 
+def figure3_groups(task_runs: list[Run]) -> dict[str, tuple[list[Run], str]]:
+    """Fig. 3's runs per algorithm and their legend label: the runs the table's means take (with a
+    budget, those that reached it, so that no band jumps where a shorter run ends)."""
+    kept, _ = _complete(_by(task_runs, "algo"))
+    groups = {}
+    for (algo,), members in sorted(kept.items()):
+        label = ALGO_TITLES.get(algo, algo)
+        groups[algo] = (members, label if all(map(_reached, members)) else f"{label}, in progress")
+    return groups
+
+
 def figure3(runs: list[Run], out: Path) -> list[Path]:
     written = []
     for (task,), task_runs in _by(runs, "task").items():
         fig, (ax_ret, ax_man) = plt.subplots(1, 2, figsize=(10, 3.8))
-        for (algo,), members in sorted(_by(task_runs, "algo").items()):
+        for algo, (members, label) in figure3_groups(task_runs).items():
             color = COLORS.get(algo)
-            _plot_band(ax_ret, _curves(members, "eval.csv", "forward_return"), color, ALGO_TITLES.get(algo, algo))
-            _plot_band(ax_man, _curves(members, "progress.csv", "manual_resets"), color, ALGO_TITLES.get(algo, algo))
+            _plot_band(ax_ret, _curves(members, "eval.csv", "forward_return"), color, label)
+            _plot_band(ax_man, _curves(members, "progress.csv", "manual_resets"), color, label)
         ax_ret.set(title=f"{TASK_TITLES.get(task, task)}: forward return", xlabel="steps (forward + reset)",
                    ylabel="discounted return (evaluation)")
         ax_man.set(title="cumulative manual resets", xlabel="steps (forward + reset)", ylabel="manual resets")

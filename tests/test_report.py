@@ -132,6 +132,10 @@ def test_runs_short_of_the_budget_are_left_out_of_their_groups_means(tmp_path):
     assert "| ours | 0.1 | 1 | 40 ± 0 |" in table
     assert "| peg-insertion (insert) | LNT | 0.1 | 1 | 750 (in progress) |" in table
     assert "Left out of the means, still short of the budget: ours seed 1 at 500 steps." in table
+    # Fig. 3 draws the same runs: ours from seed 0 alone, LNT's only run marked in progress
+    groups = report.figure3_groups(report.find_runs([runs], budget=1000))
+    assert [r.summary["seed"] for r in groups["ours"][0]] == [0] and groups["ours"][1] == "ours"
+    assert [r.summary["seed"] for r in groups["lnt"][0]] == [0] and groups["lnt"][1] == "LNT, in progress"
 
 
 def test_step_axes_read_in_thousands_and_millions():
