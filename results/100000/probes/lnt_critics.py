@@ -1,0 +1,56 @@
+"""The LNT reset agent's Q-ensemble on its own reset replay, from a run's checkpoint.
+
+    python results/100000/probes/lnt_critics.py runs/peg_insertion_insert/lnt/seed1 100000
+
+Prints, for 4096 replay rows drawn uniformly and for the newest 4096 rows, the members' Q on the
+replayed action and on the reset policy's action: the ensemble mean, the minimum over members (what
+the trigger compares with Q_thresh), the spread between members and each member's mean. The shaped
+reset reward lies in [0, 1], so every true value lies in [0, 1 / (1 - gamma)] = [0, 100].
+"""
+import sys
+from pathlib import Path
+
+import torch
+from omegaconf import OmegaConf
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[3] / "recipes"))
+from agents import make_reset_agent  # noqa: E402
+from buffers import make_buffers  # noqa: E402
+from task_envs import task_dimensions  # noqa: E402
+
+
+def main(run: str, step: int, rows: int = 4096) -> None:
+    torch.set_num_threads(1)
+    cfg = OmegaConf.load(Path(run) / "config.yaml")
+    if cfg.algo.name not in ("lnt", "lnt_sparse"):
+        raise SystemExit(f"{run} is an {cfg.algo.name} run; this probe reads LNT's Q-ensemble.")
+    obs_dim, action_spec = task_dimensions(cfg)
+    agent = make_reset_agent(cfg, obs_dim, action_spec)
+    folder = Path(run) / "checkpoints" / f"step_{step:010d}"
+    agent.loss.load_state_dict(torch.load(folder / "state.pt", weights_only=False)["reset_loss"])
+    _, replay = make_buffers(cfg)
+    replay.loads(folder / "reset_buffer")
+    held = len(replay)
+    print(f"{run} at step {step}: {held} reset replay rows, {cfg.algo.num_members} members, "
+          f"reward {cfg.algo.reset_reward}, Q_thresh {cfg.algo.threshold}")
+    generator = torch.Generator().manual_seed(0)
+    picks = {"uniform": torch.randint(0, held, (rows,), generator=generator),
+             f"newest {rows}": torch.arange(max(0, held - rows), held)}
+    for name, index in picks.items():
+        data = replay.storage[index]
+        reward = data["next", "reset_reward"] if cfg.algo.reset_reward == "shaped" else data["next", "reset_success"].float()
+        print(f"{name}: reward mean {reward.mean():.3f}, rows at the start {data['next', 'reset_success'].float().mean():.3f}")
+        with torch.no_grad():
+            replayed = agent.model(data.select("observation", "action").clone())["state_action_value"]
+            acting = agent.actor(data.select("observation").clone())
+            policy = agent.model(acting.select("observation", "action"))["state_action_value"]
+        for label, q in (("Q(s, a replayed)", replayed), ("Q(s, pi_r(s))", policy)):
+            print(f"  {label}: mean {q.mean():.1f}, minimum over members {q.amin(-1).mean():.1f} "
+                  f"(below Q_thresh on {(q.amin(-1) < cfg.algo.threshold).float().mean():.0%} of rows), "
+                  f"spread (sd over members) {q.std(-1).mean():.1f}; members outside [0, 100]: "
+                  f"{int(((q.mean(0) < 0) | (q.mean(0) > 100)).sum())} of {q.shape[-1]}")
+            print("    member means: " + " ".join(f"{v:.0f}" for v in q.mean(0).tolist()))
+
+
+if __name__ == "__main__":
+    main(sys.argv[1], int(sys.argv[2]))
