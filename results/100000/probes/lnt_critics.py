@@ -4,7 +4,8 @@
 
 Prints, for 4096 replay rows drawn uniformly and for the newest 4096 rows, the members' Q on the
 replayed action and on the reset policy's action: the ensemble mean, the minimum over members (what
-the trigger compares with Q_thresh), the spread between members and each member's mean. The shaped
+the trigger compares with Q_thresh), the spread between members, each member's mean, and each
+member's TD(0) target and error as the update computes them. The shaped
 reset reward lies in [0, 1], so every true value lies in [0, 1 / (1 - gamma)] = [0, 100].
 """
 import sys
@@ -14,7 +15,7 @@ import torch
 from omegaconf import OmegaConf
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[3] / "recipes"))
-from agents import make_reset_agent  # noqa: E402
+from agents import lnt_batch, make_reset_agent  # noqa: E402
 from buffers import make_buffers  # noqa: E402
 from task_envs import task_dimensions  # noqa: E402
 
@@ -50,6 +51,11 @@ def main(run: str, step: int, rows: int = 4096) -> None:
                   f"spread (sd over members) {q.std(-1).mean():.1f}; members outside [0, 100]: "
                   f"{int(((q.mean(0) < 0) | (q.mean(0) > 100)).sum())} of {q.shape[-1]}")
             print("    member means: " + " ".join(f"{v:.0f}" for v in q.mean(0).tolist()))
+        with torch.no_grad():  # the update's own TD(0) targets, from the target actor and critics
+            out = agent.loss(lnt_batch(data.clone(), cfg.algo, int(cfg.algo.num_members)))
+        error = (out["pred_value"] - out["target_value"]).pow(2).mean(0).sqrt()
+        print("  TD(0) target, member means: " + " ".join(f"{v:.0f}" for v in out["target_value"].mean(0).tolist()))
+        print("  TD(0) error (rms), members: " + " ".join(f"{v:.1f}" for v in error.tolist()))
 
 
 if __name__ == "__main__":
