@@ -253,7 +253,7 @@ def table1(runs: list[Run]) -> str:
     note = f" at a budget of {budget.pop()} steps" if budget else ""
     lines += [
         "",
-        f"Mean ± standard deviation over seeds{note}; the paper's numbers are 1.5M-step means of 5 seeds.",
+        f"Mean ± standard deviation over seeds (population form: divided by the number of seeds){note}; the paper's numbers are 1.5M-step means of 5 seeds.",
     ]
     if short:
         lines.append("Left out of the means, still short of the budget: " + "; ".join(
