@@ -12,7 +12,7 @@ from torch import nn
 from torchrl.modules import OrnsteinUhlenbeckProcessModule, TanhModule
 from torchrl.objectives import SoftUpdate
 
-from torchrl_reset import ResetTriggerTransform, accel
+from torchrl_reset import ResetTriggerTransform, accel, bound_td0_targets
 
 __all__ = ["speed_components", "make_actor", "with_exploration", "make_adam", "Agent", "make_forward_agent", "make_reset_agent", "make_trigger", "lnt_batch", "reset_tau"]
 
@@ -119,6 +119,9 @@ def make_reset_agent(cfg: DictConfig, obs_dim: int, action_spec) -> Agent:
         loss = parts.ddpg_loss(actor, model, delay_actor=True, delay_value=True)
         loss.set_keys(reward="lnt_reward")
         loss.make_value_estimator(gamma=cfg.gamma)
+        bounds = OmegaConf.select(cfg, "algo.reward_bounds", default=None)
+        if bounds is not None:  # not the paper's: TD targets clipped to the values these rewards allow
+            bound_td0_targets(loss, tuple(bounds))
         optimizer = make_adam(cfg, [
             {"params": list(loss.actor_network_params.values(True, True)), "lr": cfg.reset.actor_lr},
             {"params": list(loss.value_network_params.values(True, True)), "lr": cfg.reset.critic_lr},

@@ -58,6 +58,15 @@ def validate(cfg: DictConfig) -> None:
     precision = OmegaConf.select(cfg, "speed.matmul_precision", default="ieee")
     if precision not in MATMUL_PRECISIONS:
         problems.append(f"speed.matmul_precision must be one of {', '.join(MATMUL_PRECISIONS)}; got {precision!r}")
+    bounds = OmegaConf.select(cfg, "algo.reward_bounds", default=None)
+    if bounds is not None:
+        if cfg.algo.name == "ours":
+            problems.append("algo.reward_bounds clips LNT's TD targets; ours has no reward (its labels: "
+                            "algo.clip_target_values)")
+        elif (not OmegaConf.is_list(bounds) or len(bounds) != 2
+              or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in bounds)
+              or not bounds[0] < bounds[1]):
+            problems.append(f"algo.reward_bounds must be [low, high] with low < high, got {bounds!r}")
     sampling = OmegaConf.select(cfg, "algo.nstep_sampling", default="episode")
     if cfg.algo.name == "ours" and sampling not in ("episode", "transition"):
         problems.append(f"algo.nstep_sampling must be episode or transition, got {sampling!r}")

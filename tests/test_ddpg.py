@@ -165,3 +165,49 @@ def test_mismatched_reward_columns_are_an_error():
     data = random_batch(4, 1, torch.Generator().manual_seed(0))  # one reward column for three members
     with pytest.raises(RuntimeError, match="same shape"):
         loss(data)
+
+
+@pytest.mark.parametrize("loss_cls", [DDPGLoss, DirectDDPGLoss])
+def test_bounded_targets_are_clipped_to_the_values_the_rewards_allow(loss_cls):
+    from torchrl_reset import BoundedTD0Estimator, bound_td0_targets
+
+    # the hand-worked losses above, with rewards in [0, 1] and gamma = 0.9: values lie in [0, 10]
+    actor = TensorDictModule(torch.nn.Linear(1, 1, bias=False), ["observation"], ["action"])
+    critic = ValueOperator(LinearCritic(1, 1), in_keys=["observation", "action"])
+    loss = loss_cls(actor, critic, delay_actor=True, delay_value=True)
+    loss.make_value_estimator(gamma=0.9)
+    estimator = bound_td0_targets(loss, (0.0, 1.0))
+    assert isinstance(loss.value_estimator, BoundedTD0Estimator) and estimator.bounds == pytest.approx((0.0, 10.0))
+    with torch.no_grad():
+        loss.actor_network_params["module", "weight"].fill_(2.0)
+        loss.value_network_params["module", "net", "weight"].copy_(torch.tensor([[1.0, 3.0]]))
+        loss.value_network_params["module", "net", "bias"].fill_(0.5)
+        loss.target_actor_network_params["module", "weight"].fill_(1.0)
+        loss.target_value_network_params["module", "net", "weight"].copy_(torch.tensor([[2.0, 1.0]]))
+        loss.target_value_network_params["module", "net", "bias"].fill_(0.0)
+    # next states 3, -1, 6 (none terminal); a' = s'; Q'(s', a') = 3 s' = 9, -3, 18
+    td = batch(obs=[1.0, 2.0, 0.0], action=[0.5, -1.0, 0.0], next_obs=[3.0, -1.0, 6.0], reward=[1.0, 0.0, 1.0],
+               terminated=[False, False, False])
+    if loss_cls is DirectDDPGLoss:
+        assert loss._direct(td)  # its own fast path clips, not torchrl's forward
+    out = loss(td)
+    # y = r + 0.9 Q' = 9.1, -2.7, 17.2, clipped to [0, 10]: 9.1 (inside), 0, 10
+    torch.testing.assert_close(out["target_value"], torch.tensor([9.1, 0.0, 10.0]))
+    # Q(s, a) = 3, -0.5, 0.5
+    assert float(out["loss_value"].detach()) == pytest.approx(((3 - 9.1) ** 2 + 0.5**2 + 9.5**2) / 3)
+
+
+def test_bounded_targets_refuse_bad_bounds_and_other_estimators():
+    from torchrl_reset import BoundedTD0Estimator, bound_td0_targets
+
+    with pytest.raises(ValueError, match="low < high"):
+        BoundedTD0Estimator(reward_bounds=(1.0, 0.0), gamma=0.9, value_network=None)
+    with pytest.raises(ValueError, match="pair of numbers"):
+        BoundedTD0Estimator(reward_bounds=1.0, gamma=0.9, value_network=None)
+    with pytest.raises(ValueError, match=r"discount in \[0, 1\)"):
+        BoundedTD0Estimator(reward_bounds=(0.0, 1.0), gamma=1.0, value_network=None)
+    actor = TensorDictModule(torch.nn.Linear(1, 1, bias=False), ["observation"], ["action"])
+    loss = DirectDDPGLoss(actor, ValueOperator(LinearCritic(1, 1), in_keys=["observation", "action"]))
+    loss.make_value_estimator(ValueEstimators.TDLambda, gamma=0.9, lmbda=0.5)
+    with pytest.raises(TypeError, match="TD\\(0\\) estimator"):
+        bound_td0_targets(loss, (0.0, 1.0))

@@ -185,6 +185,9 @@ def test_a_crash_while_checkpointing_keeps_the_previous_checkpoint(tmp_path):
         (["speed.compile=[backward]"], "speed.compile must be a list of agents among forward, reset"),
         (["speed.matmul_precision=fp16"], "speed.matmul_precision must be one of auto, ieee, bf16"),
         (["speed.accelerate=fast"], "speed.accelerate must be true or false"),
+        (["algo=ours", "+algo.reward_bounds=[0,1]"], "algo.reward_bounds clips LNT's TD targets"),
+        (["algo=lnt", "algo.reward_bounds=[1,0]"], r"algo.reward_bounds must be \[low, high\] with low < high"),
+        (["algo=lnt_sparse", "algo.reward_bounds=[0]"], r"algo.reward_bounds must be \[low, high\]"),
     ],
 )
 def test_bad_configs_fail_before_training(tmp_path, overrides, message):
@@ -399,6 +402,23 @@ def test_options_beside_the_paper_a_pessimistic_start_and_the_reset_agents_own_t
     target = pessimistic.loss.target_classifier_network_params
     assert torch.all(target.get(f"bias_{pessimistic.model.num_layers - 1}") == -4.0)  # the targets start alike
     assert paper.targets.eps == pytest.approx(1 - 0.001) and pessimistic.targets.eps == pytest.approx(1 - 0.01)
+
+
+@pytest.mark.parametrize("accelerate", [True, False])
+def test_lnt_option_beside_the_paper_targets_clipped_to_the_rewards_bounds(tmp_path, accelerate):
+    from torchrl.objectives.value import TD0Estimator
+
+    from torchrl_reset import BoundedTD0Estimator
+
+    spec = train_utils.make_env("peg_insertion_insert").action_spec
+    paper = train_utils.make_reset_agent(config(tmp_path, "algo=lnt", f"speed.accelerate={accelerate}"), 14, spec)
+    assert type(paper.loss.value_estimator) is TD0Estimator  # the paper's LNT: unclipped
+    clipped = train_utils.make_reset_agent(config(tmp_path, "algo=lnt", "algo.reward_bounds=[0,1]",
+                                                  f"speed.accelerate={accelerate}"), 14, spec)
+    estimator = clipped.loss.value_estimator
+    # rewards in [0, 1] at gamma = 0.99: every value lies in [0, 1 / 0.01] = [0, 100]
+    assert isinstance(estimator, BoundedTD0Estimator) and estimator.bounds == pytest.approx((0.0, 100.0))
+    assert estimator.tensor_keys.reward == "lnt_reward" and float(estimator.gamma) == pytest.approx(0.99)
 
 
 def test_two_runs_never_train_in_one_folder(tmp_path):

@@ -8,6 +8,7 @@ from .ensemble import EnsembleValueOperator, reduce_members, success_classifier,
 from .example_buffer import InitialStateBuffer
 from .nstep import EpisodeWindowSampler, NStepStateTransform
 from .rce_loss import RCELoss
+from .td_bounds import BoundedTD0Estimator, bound_td0_targets
 from .trigger import ResetTriggerTransform
 from . import accel  # the accelerator: the same numbers, faster (torchrl_reset.accel)
 
@@ -16,6 +17,7 @@ __version__ = "0.1.0"
 __all__ = [
     "accel",
     "BatchedDualCollector",
+    "BoundedTD0Estimator",
     "DualCollector",
     "EnsembleValueOperator",
     "EpisodeWindowSampler",
@@ -23,6 +25,7 @@ __all__ = [
     "NStepStateTransform",
     "RCELoss",
     "ResetTriggerTransform",
+    "bound_td0_targets",
     "find_trigger_transforms",
     "reduce_members",
     "split_phases",

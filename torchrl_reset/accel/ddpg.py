@@ -8,6 +8,7 @@ from torch.func import functional_call
 from torchrl.objectives import DDPGLoss
 from torchrl.objectives.utils import distance_loss
 from torchrl.objectives.value import TD0Estimator
+from ..td_bounds import BoundedTD0Estimator
 
 __all__ = ["DirectDDPGLoss"]
 
@@ -36,7 +37,8 @@ class DirectDDPGLoss(DDPGLoss):
     the entries they read, their own live parameters need no swap, and the target and detached
     parameter sets go in through :func:`torch.func.functional_call`.
 
-    The direct path covers the recipe's configuration: the TD(0) value estimator without reward
+    The direct path covers the recipe's configuration: the TD(0) value estimator (or its bounded
+    form, :class:`~torchrl_reset.BoundedTD0Estimator`, whose clipping it applies) without reward
     standardisation or ``steps_to_next_obs``, no priority weights, and networks that hold the
     loss's trained parameters themselves (as torchrl's conversion leaves them). Anything else
     (another estimator, prioritized replay weights in the batch) runs torchrl's own ``forward``. Outputs are
@@ -69,7 +71,7 @@ class DirectDDPGLoss(DDPGLoss):
     def _direct(self, tensordict: TensorDictBase) -> bool:
         estimator = self.value_estimator
         return (
-            type(estimator) is TD0Estimator
+            type(estimator) in (TD0Estimator, BoundedTD0Estimator)
             and not estimator.average_rewards
             and self._maybe_get_priority_weight(tensordict) is None
             and estimator.tensor_keys.steps_to_next_obs not in tensordict.keys(True)
@@ -106,6 +108,9 @@ class DirectDDPGLoss(DDPGLoss):
                 )
             gamma = self.value_estimator.gamma.to(reward.device)
             target_value = (reward + gamma * (~terminated).int() * next_value).squeeze(-1)
+            bounds = getattr(self.value_estimator, "bounds", None)  # BoundedTD0Estimator: the reward bounds' values
+            if bounds is not None:
+                target_value = target_value.clamp(*bounds)
         loss_value = self._reduce_loss(distance_loss(pred_val, target_value, loss_function=self.loss_function),
                                        tensordict=tensordict)
         td_error = (pred_val - target_value).pow(2).detach()
