@@ -27,6 +27,10 @@ S, B, OBS, ACT = 3, 12, 5, 2
 
 
 def cfg_for(algo: str, accelerate: bool):
+    if algo == "lnt_bounded":  # LNT with the option beside the paper: targets clipped to [0, 100]
+        cfg = cfg_for("lnt", accelerate)
+        cfg.algo.reward_bounds = [0.0, 1.0]
+        return cfg
     with initialize_config_dir(config_dir=str(RECIPES / "conf"), version_base="1.3"):
         return compose(config_name="config", overrides=[
             f"algo={algo}", "hidden_sizes=[16,16]", "algo.num_members=3", f"speed.accelerate={str(accelerate).lower()}",
@@ -78,7 +82,7 @@ def reference_step(agent, td, names) -> dict:
     return {n: float(losses[n].detach()) for n in names}
 
 
-CASES = [("ours", "reset"), ("ours", "forward"), ("lnt", "reset"), ("lnt_sparse", "reset")]
+CASES = [("ours", "reset"), ("ours", "forward"), ("lnt", "reset"), ("lnt_sparse", "reset"), ("lnt_bounded", "reset")]
 
 
 @pytest.mark.parametrize("algo,role", CASES)

@@ -399,7 +399,9 @@ class RunDDPGUpdate(_RunUpdate):
 
     Per run, as :class:`~torchrl.objectives.DDPGLoss` with the TD(0) estimator computes it:
     ``loss_value = mean (Q_i(s, a) - r - gamma (1 - terminated) Q'_i(s', pi'(s')))^2`` over the
-    batch and the members, ``loss_actor = -mean Q_i(s, pi(s))`` with the critic held fixed.
+    batch and the members, ``loss_actor = -mean Q_i(s, pi(s))`` with the critic held fixed. Where the
+    losses' estimator is a :class:`~torchrl_reset.BoundedTD0Estimator` the targets are clipped as it
+    clips them.
 
     Args:
         losses: the runs' DDPG loss modules (their networks and target copies are bound).
@@ -415,6 +417,10 @@ class RunDDPGUpdate(_RunUpdate):
         policies = RunPolicies([loss.actor_network for loss in losses], [loss.target_actor_network_params for loss in losses])
         ensembles = RunEnsembles([loss.value_network for loss in losses], [loss.target_value_network_params for loss in losses])
         self.gamma, self.reward_key = float(gamma), reward_key
+        bounds = {getattr(loss.value_estimator, "bounds", None) for loss in losses}  # BoundedTD0Estimator's
+        if len(bounds) > 1:
+            raise ValueError(f"the runs' TD target bounds differ ({sorted(map(str, bounds))}); batch runs that share them.")
+        self.bounds = bounds.pop()
         self.obs_key = policies.in_key
         super().__init__(policies, ensembles, optimizers, tau)
 
@@ -428,6 +434,8 @@ class RunDDPGUpdate(_RunUpdate):
         with torch.no_grad():
             next_q = self.ensembles.logits(next_obs, self.policies(next_obs, runs, target=True), runs, target=True)
             target = reward + self.gamma * (~terminated).int() * next_q
+            if self.bounds is not None:
+                target = target.clamp(*self.bounds)
         loss_value = (q - target).pow(2).flatten(1).mean(1)
         actor_q = self.ensembles.logits(obs, self.policies(obs, runs), runs, detach=True)
         loss_actor = -actor_q.flatten(1).mean(1)
