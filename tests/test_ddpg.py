@@ -33,13 +33,15 @@ def batch(obs, action, next_obs, reward, terminated) -> TensorDict:
     )
 
 
-@pytest.mark.parametrize("loss_cls", [DDPGLoss, DirectDDPGLoss])
-def test_losses_and_gradients_by_hand(loss_cls):
-    # actor a = w s; critic Q(s, a) = c1 s + c2 a + c0; separate target copies
+def hand_worked_loss(loss_cls, reward_bounds=None):
+    """actor a = 2 s, critic Q(s, a) = s + 3 a + 0.5; targets a' = s', Q'(s', a') = 2 s' + a'; gamma = 0.9."""
     actor = TensorDictModule(torch.nn.Linear(1, 1, bias=False), ["observation"], ["action"])
     critic = ValueOperator(LinearCritic(1, 1), in_keys=["observation", "action"])
     loss = loss_cls(actor, critic, delay_actor=True, delay_value=True)
     loss.make_value_estimator(gamma=0.9)
+    if reward_bounds is not None:
+        from torchrl_reset import bound_td0_targets
+        bound_td0_targets(loss, reward_bounds)
     with torch.no_grad():
         loss.actor_network_params["module", "weight"].fill_(2.0)
         loss.value_network_params["module", "net", "weight"].copy_(torch.tensor([[1.0, 3.0]]))
@@ -47,6 +49,12 @@ def test_losses_and_gradients_by_hand(loss_cls):
         loss.target_actor_network_params["module", "weight"].fill_(1.0)
         loss.target_value_network_params["module", "net", "weight"].copy_(torch.tensor([[2.0, 1.0]]))
         loss.target_value_network_params["module", "net", "bias"].fill_(0.0)
+    return loss
+
+
+@pytest.mark.parametrize("loss_cls", [DDPGLoss, DirectDDPGLoss])
+def test_losses_and_gradients_by_hand(loss_cls):
+    loss = hand_worked_loss(loss_cls)
     td = batch(obs=[1.0, 2.0], action=[0.5, -1.0], next_obs=[3.0, -1.0], reward=[1.0, 0.0], terminated=[False, True])
     out = loss(td)
     # Q(s, a) = [3, -0.5]; target a' = [3, -1], Q'(s', a') = [9, -3], y = r + 0.9 (1 - term) Q' = [9.1, 0]
@@ -169,22 +177,12 @@ def test_mismatched_reward_columns_are_an_error():
 
 @pytest.mark.parametrize("loss_cls", [DDPGLoss, DirectDDPGLoss])
 def test_bounded_targets_are_clipped_to_the_values_the_rewards_allow(loss_cls):
-    from torchrl_reset import BoundedTD0Estimator, bound_td0_targets
+    from torchrl_reset import BoundedTD0Estimator
 
     # the hand-worked losses above, with rewards in [0, 1] and gamma = 0.9: values lie in [0, 10]
-    actor = TensorDictModule(torch.nn.Linear(1, 1, bias=False), ["observation"], ["action"])
-    critic = ValueOperator(LinearCritic(1, 1), in_keys=["observation", "action"])
-    loss = loss_cls(actor, critic, delay_actor=True, delay_value=True)
-    loss.make_value_estimator(gamma=0.9)
-    estimator = bound_td0_targets(loss, (0.0, 1.0))
-    assert isinstance(loss.value_estimator, BoundedTD0Estimator) and estimator.bounds == pytest.approx((0.0, 10.0))
-    with torch.no_grad():
-        loss.actor_network_params["module", "weight"].fill_(2.0)
-        loss.value_network_params["module", "net", "weight"].copy_(torch.tensor([[1.0, 3.0]]))
-        loss.value_network_params["module", "net", "bias"].fill_(0.5)
-        loss.target_actor_network_params["module", "weight"].fill_(1.0)
-        loss.target_value_network_params["module", "net", "weight"].copy_(torch.tensor([[2.0, 1.0]]))
-        loss.target_value_network_params["module", "net", "bias"].fill_(0.0)
+    loss = hand_worked_loss(loss_cls, reward_bounds=(0.0, 1.0))
+    assert isinstance(loss.value_estimator, BoundedTD0Estimator)
+    assert loss.value_estimator.bounds == pytest.approx((0.0, 10.0))
     # next states 3, -1, 6 (none terminal); a' = s'; Q'(s', a') = 3 s' = 9, -3, 18
     td = batch(obs=[1.0, 2.0, 0.0], action=[0.5, -1.0, 0.0], next_obs=[3.0, -1.0, 6.0], reward=[1.0, 0.0, 1.0],
                terminated=[False, False, False])
