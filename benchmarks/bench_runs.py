@@ -3,6 +3,7 @@
     python benchmarks/bench_runs.py                          # S = 1, 2, 5, 10; about 15 minutes on 2 cores
     python benchmarks/bench_runs.py --runs 1 5 --steps 900   # a shorter look
     python benchmarks/bench_runs.py --runs 1 5 --acting      # also each batch with speed.batched_acting=true
+    python benchmarks/bench_runs.py --device cuda            # every run's networks and batches on the GPU
 
 Side by side, in one invocation, each configuration its own process of ``recipes/train.py``
 (algorithm ``ours``, 400-300 networks, batch 64 / 256 + 256 examples, K = 5, n = 10; only the
@@ -37,7 +38,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
-from bench_updates import describe, machine, write_results  # noqa: E402
+from bench_updates import check_device, describe, machine, write_results  # noqa: E402
 
 TASK, ALGO = "peg_insertion_insert", "ours"
 GRID_RUNS, PAPER_STEPS = 90, 1_500_000  # the paper's Table 1: 6 tasks x 3 algorithms x 5 seeds, 1.5M steps each
@@ -128,12 +129,15 @@ def main(argv=None) -> dict:
     parser.add_argument("--acting", action="store_true",
                         help="also each batch with speed.batched_acting=true (the runs act as one: one env of S copies)")
     parser.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results")
+    parser.add_argument("--device", default="cpu",
+                        help="the recipe's device for every run (cpu or cuda[:k]); the GPU's name goes in the results")
     parser.add_argument("--override", action="append", default=[],
                         help="an extra recipe setting for every run (key=value; repeatable), stated in the results")
     args = parser.parse_args(argv)
     if any(s < 1 for s in args.runs) or args.steps <= 3 * args.heat_up:
         raise SystemExit("--runs must be positive and --steps well past 3 x --heat-up (the steady part is measured).")
-    info, extra = machine(), tuple(args.override)
+    device = check_device(args.device)
+    info, extra = machine(device), (*args.override, f"device={device}")
     rows, report = [], {"machine": info, "task": TASK, "algo": ALGO, "steps": args.steps, "heat_up": args.heat_up,
                         "threads": args.threads, "overrides": list(extra), "batched": {}}
     with tempfile.TemporaryDirectory() as tmp:

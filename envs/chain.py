@@ -29,7 +29,7 @@ class ChainEnv(EnvBase):
     ======================  ===========================================================
 
     A reset policy that always steps left reaches the initial state from cell ``k`` in exactly
-    ``k`` steps and stays there, so its success probability is ``gamma ** k`` (method.md section 1).
+    ``k`` steps and stays there, so its success probability is ``gamma ** k`` (docs/method.md section 1).
     The env never terminates by itself. It is deterministic; ``get_simulator_state`` / ``set_simulator_state``
     save and restore it.
 

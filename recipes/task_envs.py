@@ -1,5 +1,5 @@
 """The task's environments in the recipe: the training and evaluation envs with their trigger, the
-real-time robot's update budget and safety counters, and the evaluation episodes (method.md section 7)."""
+real-time robot's update budget and safety counters, and the evaluation episodes (docs/method.md section 7)."""
 from __future__ import annotations
 
 from typing import Any, Callable
@@ -97,7 +97,7 @@ def safety_counters(env: TransformedEnv) -> dict[str, int]:
 def evaluate(env: TransformedEnv, trigger: ResetTriggerTransform, forward_actor, reset_actor, *, horizon: int,
              reset_horizon: int, min_reset_steps: int, gamma: float,
              observe: Callable[[str], None] | None = None) -> dict[str, Any]:
-    """One forward and one reset episode with exploration off, from ``env.reset()`` (method.md section 7).
+    """One forward and one reset episode with exploration off, from ``env.reset()`` (docs/method.md section 7).
 
     ``observe(phase)``, when given, is called after the reset and after every step, with ``phase``
     ``"forward"``, ``"trigger"`` (the step the trigger stopped) or ``"reset"`` (recipes/video.py

@@ -151,7 +151,7 @@ class StockEnsemble(TensorDictModuleBase):
 
 
 def by_hand(actor, ensemble, target, batch, k):
-    """RCE losses member by member with torch.func.functional_call (method.md section 3, the release's label)."""
+    """RCE losses member by member with torch.func.functional_call (docs/method.md section 3, the release's label)."""
     def logit(params, i, obs, act):
         x = torch.cat([obs, act], -1)
         f = functional_call(ensemble.net, {".".join(key): v[i] for key, v in params["trained"].items(True, True)}, (x,))

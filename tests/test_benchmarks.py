@@ -105,6 +105,8 @@ def test_runs_benchmark_command_gives_the_batch_against_separate_processes(tmp_p
     report = bench_runs.main(["--runs", "2", "--steps", "120", "--heat-up", "20", "--out", str(tmp_path), "--acting",
                               *[f"--override={o}" for o in tiny]])
     assert sorted(p.suffix for p in tmp_path.iterdir()) == [".json", ".md"]
+    assert "device=cpu" in report["overrides"]  # --device's default, passed to every run
+    assert {r["device"] for r in report["separate"]["runs"]} == {"cpu"}
     separate = report["separate"]["aggregate_steps_per_second"]
     assert separate == pytest.approx(sum(bench_runs.steady_rate(r) for r in report["separate"]["runs"]))
     for layout in ("", "_acting"):  # each runs as it acts alone, then with speed.batched_acting
@@ -134,7 +136,7 @@ def test_acting_benchmark_command_times_both_collectors_on_the_same_steps(tmp_pa
 
 
 @pytest.mark.skipif(torch.cuda.is_available(), reason="checks the message of a machine without CUDA")
-@pytest.mark.parametrize("script", [bench_updates, bench_loop])
+@pytest.mark.parametrize("script", [bench_updates, bench_loop, bench_runs, bench_acting])
 def test_a_cuda_run_without_cuda_stops_with_a_clear_message(script, tmp_path):
     with pytest.raises(SystemExit, match="no CUDA device"):
         script.main(["--device", "cuda", "--out", str(tmp_path)])

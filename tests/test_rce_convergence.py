@@ -1,4 +1,4 @@
-"""Trained with RCELoss under a fixed reset policy, the classifiers learn p = gamma ** T (method.md section 1).
+"""Trained with RCELoss under a fixed reset policy, the classifiers learn p = gamma ** T (docs/method.md section 1).
 
 On ChainEnv the policy "step left" reaches the initial cell 0 from cell k in exactly T = k steps
 and stays there, so the success probability of (k, left) is gamma ** k. The fixed point of the

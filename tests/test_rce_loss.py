@@ -1,4 +1,4 @@
-"""RCELoss against numbers worked out by hand from method.md section 3."""
+"""RCELoss against numbers worked out by hand from docs/method.md section 3."""
 from __future__ import annotations
 
 import math
@@ -87,7 +87,7 @@ def test_nstep_label_mixes_one_step_and_n_step_terms_then_takes_member_minimum()
 
 
 def test_target_values_above_half_enter_the_label_unclipped_and_the_label_is_clipped_at_half():
-    # The release (method.md section 9): logit 2 everywhere, C = sigmoid(2) = 0.8808 enters the label
+    # The release (docs/method.md section 9): logit 2 everywhere, C = sigmoid(2) = 0.8808 enters the label
     # unclipped, gamma C / (1 + (gamma - 1) C) = 0.869, which is clipped to 0.5; the weight's classifier
     # value is clipped to 0.5, so the weight is 1 + gamma.
     gamma = 0.9

@@ -1,4 +1,4 @@
-"""The optimized reset update against a plain implementation written straight from method.md section 3.
+"""The optimized reset update against a plain implementation written straight from docs/method.md section 3.
 
 The plain version loops over members with one small network per member, evaluates each prior
 separately, runs the actor loss on its own pass through the classifier, steps torch's default
@@ -42,11 +42,11 @@ def plain_logits(params: dict, priors: dict, obs: torch.Tensor, act: torch.Tenso
 
 
 def plain_losses(actor: nn.Module, params: dict, target: dict, priors: dict, batch: TensorDict):
-    """The RCE classifier loss and the actor loss, one term at a time (method.md section 3)."""
+    """The RCE classifier loss and the actor loss, one term at a time (docs/method.md section 3)."""
     s, a = batch["observation"], batch["action"]
     s1, sn, se = batch["next", "observation"], batch["nstep", "observation"], batch["example", "observation"]
     with torch.no_grad():
-        # the release (method.md section 9): unclipped target values C, label c2l(C) = g C / (1 + (g - 1) C)
+        # the release (docs/method.md section 9): unclipped target values C, label c2l(C) = g C / (1 + (g - 1) C)
         c1 = torch.sigmoid(plain_logits(target, priors, s1, actor(s1)))
         cn = torch.sigmoid(plain_logits(target, priors, sn, actor(sn)))
         g, gn = GAMMA, GAMMA**N_STEPS

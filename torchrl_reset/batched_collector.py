@@ -1,4 +1,4 @@
-"""Algorithm 1 on N copies of a task at once, each copy in its own phase (method.md section 2)."""
+"""Algorithm 1 on N copies of a task at once, each copy in its own phase (docs/method.md section 2)."""
 from __future__ import annotations
 
 from collections import OrderedDict

@@ -1,4 +1,4 @@
-"""Forward and reset episodes interleaved without free resets (paper, Algorithm 1; method.md section 2)."""
+"""Forward and reset episodes interleaved without free resets (paper, Algorithm 1; docs/method.md section 2)."""
 from __future__ import annotations
 
 import warnings

@@ -69,7 +69,7 @@ class EnsembleValueOperator(TensorDictModuleBase):
     batched matrix products (no Python loop over members). This class is the plain reference;
     :class:`torchrl_reset.accel.FastEnsembleValueOperator` computes the same numbers faster.
 
-    Trainable weights use Xavier-uniform initialisation and zero biases (method.md section 5).
+    Trainable weights use Xavier-uniform initialisation and zero biases (docs/method.md section 5).
 
     Args:
         observation_dim (int): size of the observation (the sum of the sizes of all observation

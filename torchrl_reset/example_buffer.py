@@ -1,4 +1,4 @@
-"""The initial-state example buffer S* (method.md section 2)."""
+"""The initial-state example buffer S* (docs/method.md section 2)."""
 from __future__ import annotations
 
 from collections.abc import Sequence

@@ -1,4 +1,4 @@
-"""The state n steps later, for the n-step RCE label (method.md section 3)."""
+"""The state n steps later, for the n-step RCE label (docs/method.md section 3)."""
 from __future__ import annotations
 
 import json
@@ -180,7 +180,7 @@ class EpisodeWindowSampler(Sampler):
 
     The authors' release draws an RCE replay row by picking an episode uniformly among those with
     at least ``n_steps`` transitions, then a start ``t`` uniformly among the positions with
-    ``t + n - 1`` at most the episode's last transition (method.md section 9). So ``s_{t+n}`` (the
+    ``t + n - 1`` at most the episode's last transition (docs/method.md section 9). So ``s_{t+n}`` (the
     ``"nstep"`` entry that :class:`NStepStateTransform` writes) is always a real state n steps later
     in the same episode; the last n - 1 transitions of an episode and episodes shorter than n are
     never drawn. While no episode has n transitions, rows are drawn uniformly (counted in

@@ -1,4 +1,4 @@
-"""Recursive classification of examples (RCE) for the reset agent (paper Eq. 2-3, method.md section 3)."""
+"""Recursive classification of examples (RCE) for the reset agent (paper Eq. 2-3, docs/method.md section 3)."""
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
@@ -44,17 +44,17 @@ class RCELoss(LossModule):
     """The reset agent's loss: an RCE-trained classifier ensemble and a DDPG-style actor.
 
     Paper: Kim et al. (RA-L 2022), Eq. 2-3 and "Implementation details", with the facts of the
-    authors' implementation (method.md section 3). For replay transitions ``(s_t, a_t, s_{t+1},
+    authors' implementation (docs/method.md section 3). For replay transitions ``(s_t, a_t, s_{t+1},
     s_{t+n})`` and success examples ``s*`` (examples of initial states), with target classifiers
     ``C'`` and actions from the current reset policy ``pi`` (no noise), and ``w(C) = C / (1 - C)``
     (in the weight, with ``C`` clipped to [0, 0.5]):
 
     - label, per member ``i``: ``y_i = 0.5 * (g C1 / (1 + (g - 1) C1) + g^n Cn / (1 + (g^n - 1) Cn))``
       with ``C1 = C'_i(s_{t+1}, pi(s_{t+1}))`` and ``Cn = C'_i(s_{t+n}, pi(s_{t+n}))``, the target
-      values *unclipped* as in the authors' release (method.md section 9); ``g C / (1 + (g - 1) C)``
+      values *unclipped* as in the authors' release (docs/method.md section 9); ``g C / (1 + (g - 1) C)``
       is ``g w / (1 + g w)`` written with ``C``, so with ``n = 1`` it is the one-step RCE label.
-      ``clip_target_values=True`` clips ``C1`` and ``Cn`` to [0, 0.5] first (method.md section 3's
-      reading, which caps the n-step label at about 0.486);
+      ``clip_target_values=True`` clips ``C1`` and ``Cn`` to [0, 0.5] first (the other reading in
+      docs/method.md section 9, which caps the n-step label at about 0.486);
     - the label shared by all members is the ensemble minimum ``y = min_i y_i``, clipped at 0.5;
     - weight ``1 + g w_y`` where ``w_y`` is the ratio of the label turned back into a classifier
       value, ``c_y = y / (y + g (1 - y))`` clipped to [0, 0.5] (``w_y = w1`` when ``n = 1``);
@@ -276,7 +276,7 @@ class RCELoss(LossModule):
             self._check_keys()
 
     def make_value_estimator(self, *args, **kwargs):
-        raise NotImplementedError("RCELoss computes its own label (method.md section 3); it takes no value estimator.")
+        raise NotImplementedError("RCELoss computes its own label (docs/method.md section 3); it takes no value estimator.")
 
     @property
     def state_keys(self) -> list[NestedKey]:

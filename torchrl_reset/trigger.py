@@ -1,6 +1,6 @@
 """The reset trigger: stop the forward agent before an action it may not come back from.
 
-Paper: Kim et al. (RA-L 2022), "Reset trigger mechanism"; method.md section 4.
+Paper: Kim et al. (RA-L 2022), "Reset trigger mechanism"; docs/method.md section 4.
 """
 from __future__ import annotations
 

@@ -1,6 +1,7 @@
 """The LNT reset agent's Q-ensemble on its own reset replay, from a run's checkpoint.
 
     python results/100000/probes/lnt_critics.py runs/peg_insertion_insert/lnt/seed1 100000
+    python results/100000/probes/lnt_critics.py <run> <step> --csv series.csv   # also one row per call
 
 Prints, for 4096 replay rows drawn uniformly and for the newest 4096 rows, the members' Q on the
 replayed action and on the reset policy's action: the ensemble mean, the minimum over members (what
@@ -20,7 +21,7 @@ from buffers import make_buffers  # noqa: E402
 from task_envs import task_dimensions  # noqa: E402
 
 
-def main(run: str, step: int, rows: int = 4096) -> None:
+def main(run: str, step: int, csv_path: str | None = None, rows: int = 4096) -> None:
     torch.set_num_threads(1)
     cfg = OmegaConf.load(Path(run) / "config.yaml")
     if cfg.algo.name not in ("lnt", "lnt_sparse"):
@@ -37,6 +38,7 @@ def main(run: str, step: int, rows: int = 4096) -> None:
     generator = torch.Generator().manual_seed(0)
     picks = {"uniform": torch.randint(0, held, (rows,), generator=generator),
              f"newest {rows}": torch.arange(max(0, held - rows), held)}
+    summary = {"step": step, "rows": held, "q_thresh": float(cfg.algo.threshold)}
     for name, index in picks.items():
         data = replay.storage[index]
         reward = data["next", "reset_reward"] if cfg.algo.reset_reward == "shaped" else data["next", "reset_success"].float()
@@ -51,12 +53,31 @@ def main(run: str, step: int, rows: int = 4096) -> None:
                   f"spread (sd over members) {q.std(-1).mean():.1f}; members outside [0, 100]: "
                   f"{int(((q.mean(0) < 0) | (q.mean(0) > 100)).sum())} of {q.shape[-1]}")
             print("    member means: " + " ".join(f"{v:.0f}" for v in q.mean(0).tolist()))
+            if name == "uniform" and label == "Q(s, pi_r(s))":
+                means = q.mean(0)
+                summary.update(q_mean=q.mean().item(), q_min_over_members=q.amin(-1).mean().item(),
+                               below_thresh=(q.amin(-1) < cfg.algo.threshold).float().mean().item(),
+                               spread=q.std(-1).mean().item(), lowest_member=means.min().item(),
+                               highest_member=means.max().item(),
+                               members_outside=int(((means < 0) | (means > 100)).sum()),
+                               reward_mean=reward.mean().item())
         with torch.no_grad():  # the update's own TD(0) targets, from the target actor and critics
             out = agent.loss(lnt_batch(data.clone(), cfg.algo, int(cfg.algo.num_members)))
         error = (out["pred_value"] - out["target_value"]).pow(2).mean(0).sqrt()
         print("  TD(0) target, member means: " + " ".join(f"{v:.0f}" for v in out["target_value"].mean(0).tolist()))
         print("  TD(0) error (rms), members: " + " ".join(f"{v:.1f}" for v in error.tolist()))
+        if name == "uniform":
+            summary["td_rms_median"] = error.median().item()
+    if csv_path:
+        path = Path(csv_path)
+        new = not path.exists()
+        with path.open("a") as out:
+            if new:
+                out.write(",".join(summary) + "\n")
+            out.write(",".join(f"{v:.4g}" if isinstance(v, float) else str(v) for v in summary.values()) + "\n")
 
 
 if __name__ == "__main__":
-    main(sys.argv[1], int(sys.argv[2]))
+    if len(sys.argv) not in (3, 5) or (len(sys.argv) == 5 and sys.argv[3] != "--csv"):
+        raise SystemExit("usage: lnt_critics.py <run folder> <checkpoint step> [--csv <file>]")
+    main(sys.argv[1], int(sys.argv[2]), sys.argv[4] if len(sys.argv) == 5 else None)
