@@ -150,7 +150,7 @@ def main(argv=None) -> dict:
         alone = summaries(tmp / "separate", (0, 1))
         separate = sum(steady_rate(s) for s in alone)
         report["separate"] = {"aggregate_steps_per_second": separate, "wall_seconds": time.perf_counter() - started,
-                              "runs": [{k: s[k] for k in ("seed", "forward_share", "step_seconds", "steps_per_second")}
+                              "runs": [{k: s[k] for k in ("seed", "device", "forward_share", "step_seconds", "steps_per_second")}
                                        for s in alone]}
         layouts = [("", "", ())] + ([(", batched acting", "_acting", ("speed.batched_acting=true",))] if args.acting else [])
         for count in args.runs:

@@ -30,9 +30,9 @@ def plot(path: Path, upper: float = 100.0) -> Path:
                                          gridspec_kw={"height_ratios": [3, 1]})
     values.fill_between(step, [r["lowest_member"] for r in rows], [r["highest_member"] for r in rows],
                         alpha=0.25, label="members' means: lowest to highest")
-    values.plot(step, [r["q_mean"] for r in rows], marker=".", label="ensemble mean")
+    values.plot(step, [r["q_mean"] for r in rows], marker=".", label="ensemble mean over rows")
     values.plot(step, [r["q_min_over_members"] for r in rows], marker=".",
-                label="minimum over members (the trigger's value)")
+                label="minimum over members (the trigger's value), mean over rows")
     values.axhline(q_thresh, color="k", ls=":", label=f"Q_thresh = {q_thresh:g}")
     values.axhline(0, color="grey", lw=0.8)
     values.axhline(upper, color="grey", lw=0.8, ls="--", label=f"true values lie in [0, {upper:g}]")
