@@ -48,19 +48,19 @@ def main(run: str, step: int, csv_path: str | None = None, rows: int = 4096) -> 
             acting = agent.actor(data.select("observation").clone())
             policy = agent.model(acting.select("observation", "action"))["state_action_value"]
         for label, q in (("Q(s, a replayed)", replayed), ("Q(s, pi_r(s))", policy)):
-            print(f"  {label}: mean {q.mean():.1f}, minimum over members {q.amin(-1).mean():.1f} "
-                  f"(below Q_thresh on {(q.amin(-1) < cfg.algo.threshold).float().mean():.0%} of rows), "
-                  f"spread (sd over members) {q.std(-1).mean():.1f}; members outside [0, 100]: "
-                  f"{int(((q.mean(0) < 0) | (q.mean(0) > 100)).sum())} of {q.shape[-1]}")
-            print("    member means: " + " ".join(f"{v:.0f}" for v in q.mean(0).tolist()))
+            means, lowest = q.mean(0), q.amin(-1)
+            stats = {"q_mean": q.mean().item(), "q_min_over_members": lowest.mean().item(),
+                     "below_thresh": (lowest < cfg.algo.threshold).float().mean().item(),
+                     "spread": q.std(-1).mean().item(), "lowest_member": means.min().item(),
+                     "highest_member": means.max().item(),
+                     "members_outside": int(((means < 0) | (means > 100)).sum())}
+            print(f"  {label}: mean {stats['q_mean']:.1f}, minimum over members {stats['q_min_over_members']:.1f} "
+                  f"(below Q_thresh on {stats['below_thresh']:.0%} of rows), "
+                  f"spread (sd over members) {stats['spread']:.1f}; members outside [0, 100]: "
+                  f"{stats['members_outside']} of {q.shape[-1]}")
+            print("    member means: " + " ".join(f"{v:.0f}" for v in means.tolist()))
             if name == "uniform" and label == "Q(s, pi_r(s))":
-                means = q.mean(0)
-                summary.update(q_mean=q.mean().item(), q_min_over_members=q.amin(-1).mean().item(),
-                               below_thresh=(q.amin(-1) < cfg.algo.threshold).float().mean().item(),
-                               spread=q.std(-1).mean().item(), lowest_member=means.min().item(),
-                               highest_member=means.max().item(),
-                               members_outside=int(((means < 0) | (means > 100)).sum()),
-                               reward_mean=reward.mean().item())
+                summary.update(stats, reward_mean=reward.mean().item())
         with torch.no_grad():  # the update's own TD(0) targets, from the target actor and critics
             out = agent.loss(lnt_batch(data.clone(), cfg.algo, int(cfg.algo.num_members)))
         error = (out["pred_value"] - out["target_value"]).pow(2).mean(0).sqrt()
