@@ -5,7 +5,12 @@
     python recipes/report.py runs/ --budget 100000        # every run as it stood at 100k steps
 
 Reads every folder holding a ``summary.json`` written by ``train.py`` (any mix of tasks, algorithms,
-seeds and p_thresh values) and writes into ``--out`` (default ``<first folder>/report``):
+seeds and p_thresh values) and writes into ``--out`` (default ``<first folder>/report``). Runs of one
+task and algorithm that ran with different settings (anything in their ``config.yaml`` but the seed,
+the length, where and how fast they ran and what they logged) are kept apart, labelled with what they
+changed (``ours (algo.initial_logit_bias=-4)`` beside ``ours (paper's setting)``), never averaged together:
+
+    python recipes/report.py results/100000 results/options/initial_logit_bias-4 --budget 100000
 
 - ``table1.md``: per task and algorithm, the mean and standard deviation over seeds of the average
   forward return, manual resets, forward share and reset success rate, beside the paper's numbers;
@@ -19,8 +24,10 @@ from __future__ import annotations
 
 import argparse
 import csv
+import functools
 import json
 import math
+import re
 from collections import defaultdict
 from pathlib import Path
 
@@ -59,6 +66,13 @@ TASK_TITLES = {
 ALGO_TITLES = {"ours": "ours", "lnt": "LNT", "lnt_sparse": "LNT-sparse"}
 METRICS = ("average_return", "manual_resets", "forward_share", "reset_success_rate")
 COLORS = {"ours": "tab:red", "lnt": "tab:blue", "lnt_sparse": "tab:green"}
+#: Settings that say how a run was executed, recorded or how long it ran, not what it learns (p_thresh is
+#: a grouping of its own, Fig. 4). Runs of one task and algorithm that differ in anything else are
+#: different settings: reported side by side, never averaged together.
+NOT_A_SETTING = ("seed", "seeds", "vary", "vary_values", "device", "threads", "sweep_dir", "run_dir", "resume",
+                 "total_steps", "task.total_steps", "eval_every", "log_every", "checkpoint_every",
+                 "keep_checkpoints", "progress_bar", "logger", "speed", "task.p_thresh")
+PAPER_SETTING = "paper's setting"
 
 
 class Run:
@@ -84,6 +98,7 @@ class Run:
                 raise ValueError(f"{folder / 'summary.json'} has no {key!r}: not written by train.py?")
         self.task, self.algo = self.summary["task"], self.summary["algo"]
         self.p_thresh = self.summary.get("p_thresh")
+        self.setting = ""  # what sets this run apart from others of its task and algo (assign_settings)
         if budget is not None:
             self.summary = {**self.summary, **self._at_budget(budget)}
         elif not self.summary.get("finished", True):
@@ -154,6 +169,84 @@ class Run:
         return out
 
 
+def _flatten(node, prefix: str = "") -> dict:
+    """A config as ``{"algo.initial_logit_bias": -4, ...}`` (lists as tuples), without ``NOT_A_SETTING``."""
+    out = {}
+    for key, value in node.items():
+        name = f"{prefix}{key}"
+        if any(name == k or name.startswith(f"{k}.") for k in NOT_A_SETTING):
+            continue
+        if isinstance(value, dict):
+            out.update(_flatten(value, f"{name}."))
+        else:
+            out[name] = tuple(value) if isinstance(value, list) else value
+    return out
+
+
+@functools.lru_cache(maxsize=None)
+def recipe_defaults(task: str, algo: str) -> dict:
+    """The settings ``train.py task=<task> algo=<algo>`` runs with (the paper's preset), flattened; empty
+    for a task or algorithm this checkout does not know. Keys that older runs' configs lack (a setting
+    added since) take these values."""
+    conf = Path(__file__).resolve().parent / "conf"
+    if not (conf / "task" / f"{task}.yaml").exists() or not (conf / "algo" / f"{algo}.yaml").exists():
+        return {}
+    from hydra import compose, initialize_config_dir
+    from omegaconf import OmegaConf
+
+    with initialize_config_dir(config_dir=str(conf), version_base="1.3"):
+        cfg = compose(config_name="config", overrides=[f"task={task}", f"algo={algo}"])
+    return _flatten(OmegaConf.to_container(cfg, resolve=True))
+
+
+def _value_text(value) -> str:
+    if value is None:
+        return "null"
+    if isinstance(value, tuple):
+        return "[" + ",".join(map(_value_text, value)) + "]"
+    return str(value)
+
+
+def assign_settings(runs: list[Run]) -> None:
+    """Give each run the settings that set it apart from the other runs of its task and algorithm
+    (``run.setting``: ``""`` where all agree, ``"paper's setting"`` for the recipe's defaults, else
+    ``key=value`` overrides such as ``algo.initial_logit_bias=-4``), so that the report keeps them apart."""
+    from omegaconf import OmegaConf
+
+    for (task, algo), members in _by(runs, "task", "algo").items():
+        defaults = recipe_defaults(task, algo)
+        settings = []
+        for run in members:
+            own = {}
+            if run.config is not None:
+                own = _flatten(OmegaConf.to_container(run.config, resolve=False))
+            settings.append({**defaults, **own})
+        keys = sorted({k for s in settings for k in s})
+        missing = object()
+        differ = [k for k in keys if len({repr(s.get(k, missing)) for s in settings}) > 1]
+        for run, own in zip(members, settings):
+            # where the defaults are known, name only what this run changed from them
+            changed = [k for k in differ if not defaults or repr(own.get(k, missing)) != repr(defaults.get(k, missing))]
+            if not differ:
+                run.setting = ""
+            elif not changed:
+                run.setting = PAPER_SETTING
+            else:
+                run.setting = ", ".join(
+                    f"{k}={'(unset)' if own.get(k, missing) is missing else _value_text(own[k])}" for k in changed)
+
+
+def _title(algo: str, setting: str) -> str:
+    return ALGO_TITLES.get(algo, algo) + (f" ({setting})" if setting else "")
+
+
+def _file_suffix(setting: str) -> str:
+    """``""`` for the only or the paper's setting, else the setting as a file-name part."""
+    if setting in ("", PAPER_SETTING):
+        return ""
+    return "_" + re.sub(r"[^A-Za-z0-9_.-]+", "_", setting.replace("=", ""))
+
+
 def _float(value: str) -> float:
     try:
         return float(value)
@@ -183,6 +276,7 @@ def find_runs(paths: list[Path], budget: int | None = None) -> list[Run]:
             print(f"left out: {err}")  # a run that had not logged anything by the budget
     if not runs:
         raise SystemExit(f"no run had logged anything by step {budget}: nothing to report.")
+    assign_settings(runs)
     return runs
 
 
@@ -222,19 +316,23 @@ def _complete(groups: dict) -> tuple[dict, list[Run]]:
     return kept, short
 
 
+def _row_order(task: str, algo: str, setting: str, p_thresh) -> tuple:
+    order = list(TASK_TITLES)
+    return (order.index(task) if task in order else 99, algo, setting not in ("", PAPER_SETTING), setting,
+            p_thresh or 0)
+
+
 def table1(runs: list[Run]) -> str:
-    """Markdown table: one row per (task, algo, p_thresh) group, mean ± std over its seeds, paper beside."""
-    groups, short = _complete(_by(runs, "task", "algo", "p_thresh"))
+    """Markdown table: one row per (task, algo, setting, p_thresh) group, mean ± std over its seeds, paper beside
+    (the paper's numbers only on its own setting's rows)."""
+    groups, short = _complete(_by(runs, "task", "algo", "setting", "p_thresh"))
     kinds = ("return", "count", "share", "share")
     lines = [
         "| task | algo | p_thresh | seeds | steps | avg return | manual resets | forward share | success rate |",
         "|---|---|---|---|---|---|---|---|---|",
     ]
-    order = list(TASK_TITLES)
-    for (task, algo, p_thresh), members in sorted(
-        groups.items(), key=lambda kv: (order.index(kv[0][0]) if kv[0][0] in order else 99, kv[0][1], kv[0][2] or 0)
-    ):
-        paper = PAPER_TABLE1.get((task, algo))
+    for (task, algo, setting, p_thresh), members in sorted(groups.items(), key=lambda kv: _row_order(*kv[0])):
+        paper = PAPER_TABLE1.get((task, algo)) if setting in ("", PAPER_SETTING) else None
         cells = []
         for metric, kind, index in zip(METRICS, kinds, range(4)):
             mean, std = _mean_std([r.summary[metric] for r in members])
@@ -246,7 +344,7 @@ def table1(runs: list[Run]) -> str:
         if not all(_reached(r) for r in members):
             steps += " (in progress)"
         lines.append(
-            f"| {TASK_TITLES.get(task, task)} | {ALGO_TITLES.get(algo, algo)} | {p_thresh} | {len(members)} | "
+            f"| {TASK_TITLES.get(task, task)} | {_title(algo, setting)} | {p_thresh} | {len(members)} | "
             f"{steps} | " + " | ".join(cells) + " |"
         )
     budget = {r.budget for r in runs} - {None}
@@ -257,17 +355,15 @@ def table1(runs: list[Run]) -> str:
     ]
     if short:
         lines.append("Left out of the means, still short of the budget: " + "; ".join(
-            f"{ALGO_TITLES.get(r.algo, r.algo)} seed {r.summary['seed']} at {r.summary.get('steps')} steps"
-            for r in sorted(short, key=lambda r: (r.algo, r.summary["seed"]))) + ".")
+            f"{_title(r.algo, r.setting)} seed {r.summary['seed']} at {r.summary.get('steps')} steps"
+            for r in sorted(short, key=lambda r: (r.algo, r.setting, r.summary["seed"]))) + ".")
     lines += [
         "",
         "| task | algo | p_thresh | seeds | manual resets | episodic resets | saved | release's baseline "
         "| saved | manual resets per 1k steps, last quarter |",
         "|---|---|---|---|---|---|---|---|---|---|",
     ]
-    for (task, algo, p_thresh), members in sorted(
-        groups.items(), key=lambda kv: (order.index(kv[0][0]) if kv[0][0] in order else 99, kv[0][1], kv[0][2] or 0)
-    ):
+    for (task, algo, setting, p_thresh), members in sorted(groups.items(), key=lambda kv: _row_order(*kv[0])):
         manual = _mean_std([r.summary["manual_resets"] for r in members])
         episodic = _mean_std([r.summary["episodic_resets"] for r in members])
         saved = _mean_std([r.summary["episodic_resets"] - r.summary["manual_resets"] for r in members])
@@ -275,7 +371,7 @@ def table1(runs: list[Run]) -> str:
         by_steps = _mean_std([r.summary["baseline_hard_resets"] for r in members])
         saved_by_steps = _mean_std([r.summary["baseline_hard_resets"] - r.summary["manual_resets"] for r in members])
         lines.append(
-            f"| {TASK_TITLES.get(task, task)} | {ALGO_TITLES.get(algo, algo)} | {p_thresh} | {len(members)} | "
+            f"| {TASK_TITLES.get(task, task)} | {_title(algo, setting)} | {p_thresh} | {len(members)} | "
             f"{_cell(*manual, 'count')} | {_cell(*episodic, 'count')} | {_cell(*saved, 'count')} | "
             f"{_cell(*by_steps, 'count')} | {_cell(*saved_by_steps, 'count')} | {_cell(*late, 'return')} |"
         )
@@ -298,14 +394,15 @@ def _curves(members: list[Run], table: str, column: str):
     return out
 
 
-def _plot_band(ax, curves, color, label):
+def _plot_band(ax, curves, color, label, linestyle="-"):
     if not curves:
         return
     grid = np.unique(np.concatenate([x for x, _ in curves]))
     stacked = np.array([np.interp(grid, x, y, left=np.nan, right=np.nan) for x, y in curves])
     with np.errstate(all="ignore"):
         mean = np.nanmean(stacked, axis=0)
-    ax.plot(grid, mean, color=color, label=f"{label} (n={len(curves)})")
+    ax.plot(grid, mean, color=color, ls=linestyle, marker="o" if len(grid) < 3 else None,  # a lone point shows
+            label=f"{label} (n={len(curves)})")
     if len(curves) > 1:
         ax.fill_between(grid, np.nanmin(stacked, axis=0), np.nanmax(stacked, axis=0), color=color, alpha=0.2)
 
@@ -337,24 +434,35 @@ def _save(fig, path: Path, written: list[Path]) -> None:
 
 
 def figure3_groups(task_runs: list[Run]) -> dict[str, tuple[list[Run], str]]:
-    """Fig. 3's runs per algorithm and their legend label: the runs the table's means take (with a
-    budget, those that reached it, so that no band jumps where a shorter run ends)."""
-    kept, _ = _complete(_by(task_runs, "algo"))
+    """Fig. 3's runs per algorithm (and setting, where runs differ in one) and their legend label: the runs
+    the table's means take (with a budget, those that reached it, so that no band jumps where a shorter run
+    ends). Keys: the algorithm, with `` (<setting>)`` where its runs differ in settings."""
+    kept, _ = _complete(_by(task_runs, "algo", "setting"))
     groups = {}
-    for (algo,), members in sorted(kept.items()):
-        label = ALGO_TITLES.get(algo, algo)
-        groups[algo] = (members, label if all(map(_reached, members)) else f"{label}, in progress")
+    for (algo, setting), members in sorted(kept.items(), key=lambda kv: _row_order("", *kv[0], None)):
+        label = _title(algo, setting)
+        key = algo + (f" ({setting})" if setting else "")
+        groups[key] = (members, label if all(map(_reached, members)) else f"{label}, in progress")
     return groups
+
+
+def _line_style(setting: str, others: list[str]) -> str:
+    """Solid for the only or the paper's setting; dashed, dotted, dash-dotted for the others in turn."""
+    if setting in ("", PAPER_SETTING):
+        return "-"
+    variants = sorted(s for s in others if s not in ("", PAPER_SETTING))
+    return ("--", ":", "-.")[variants.index(setting) % 3]
 
 
 def figure3(runs: list[Run], out: Path) -> list[Path]:
     written = []
     for (task,), task_runs in _by(runs, "task").items():
         fig, (ax_ret, ax_man) = plt.subplots(1, 2, figsize=(10, 3.8))
-        for algo, (members, label) in figure3_groups(task_runs).items():
-            color = COLORS.get(algo)
-            _plot_band(ax_ret, _curves(members, "eval.csv", "forward_return"), color, label)
-            _plot_band(ax_man, _curves(members, "progress.csv", "manual_resets"), color, label)
+        settings = sorted({r.setting for r in task_runs})
+        for members, label in figure3_groups(task_runs).values():
+            color, style = COLORS.get(members[0].algo), _line_style(members[0].setting, settings)
+            _plot_band(ax_ret, _curves(members, "eval.csv", "forward_return"), color, label, style)
+            _plot_band(ax_man, _curves(members, "progress.csv", "manual_resets"), color, label, style)
         ax_ret.set(title=f"{TASK_TITLES.get(task, task)}: forward return", xlabel="steps (forward + reset)",
                    ylabel="discounted return (evaluation)")
         ax_man.set(title="cumulative manual resets", xlabel="steps (forward + reset)", ylabel="manual resets")
@@ -367,7 +475,7 @@ def figure3(runs: list[Run], out: Path) -> list[Path]:
 
 def figure4(runs: list[Run], out: Path) -> list[Path]:
     written = []
-    for (task, algo), members in _by(runs, "task", "algo").items():
+    for (task, algo, setting), members in _by(runs, "task", "algo", "setting").items():
         thresholds = sorted({r.p_thresh for r in members if r.p_thresh is not None})
         if len(thresholds) < 2:
             continue
@@ -378,14 +486,14 @@ def figure4(runs: list[Run], out: Path) -> list[Path]:
                         color=COLORS.get(algo))
             ax.set(xlabel="p_thresh", title=metric.replace("_", " "))
             ax.grid(alpha=0.3)
-        fig.suptitle(f"{TASK_TITLES.get(task, task)}, {ALGO_TITLES.get(algo, algo)}: p_thresh sweep")
-        _save(fig, out / f"fig4_{task}_{algo}.png", written)
+        fig.suptitle(f"{TASK_TITLES.get(task, task)}, {_title(algo, setting)}: p_thresh sweep")
+        _save(fig, out / f"fig4_{task}_{algo}{_file_suffix(setting)}.png", written)
     return written
 
 
 def figure5(runs: list[Run], out: Path) -> list[Path]:
     written = []
-    for (task, algo), members in _by(runs, "task", "algo").items():
+    for (task, algo, setting), members in _by(runs, "task", "algo", "setting").items():
         points = [(run, run.table("triggers.csv")) for run in members]
         points = [(run, p) for run, p in points if "frames" in p]
         if not points:
@@ -394,12 +502,12 @@ def figure5(runs: list[Run], out: Path) -> list[Path]:
         fig, ax = plt.subplots(figsize=(6, 3.8))
         for run, p in points:
             ax.scatter(p["frames"], p["value"], s=6, alpha=0.5, label=f"seed {run.summary['seed']}")
-        ax.set(title=f"{TASK_TITLES.get(task, task)}, {ALGO_TITLES.get(algo, algo)}: state before each trigger",
+        ax.set(title=f"{TASK_TITLES.get(task, task)}, {_title(algo, setting)}: state before each trigger",
                xlabel="steps (forward + reset)", ylabel=label)
         ax.set_xlim(0, max(run.summary.get("steps", 0) for run in members) or None)  # the whole run, quiet stretches too
         ax.grid(alpha=0.3)
         ax.legend(fontsize=8, markerscale=3)
-        _save(fig, out / f"fig5_{task}_{algo}.png", written)
+        _save(fig, out / f"fig5_{task}_{algo}{_file_suffix(setting)}.png", written)
     return written
 
 
@@ -409,7 +517,7 @@ def figure_diagnostics(runs: list[Run], out: Path) -> list[Path]:
     replay and forward replay, the reset success rate per stretch of the run, and how far each reset episode
     ended from the start."""
     written = []
-    for (task, algo), members in _by(runs, "task", "algo").items():
+    for (task, algo, setting), members in _by(runs, "task", "algo", "setting").items():
         tables = [(run, run.table("diagnostics.csv")) for run in members]
         tables = [(run, t) for run, t in tables if "frames" in t]
         if not tables:
@@ -449,8 +557,8 @@ def figure_diagnostics(runs: list[Run], out: Path) -> list[Path]:
         for ax in axes:
             ax.grid(alpha=0.3)
             ax.legend(fontsize=6)
-        fig.suptitle(f"{TASK_TITLES.get(task, task)}, {ALGO_TITLES.get(algo, algo)}: diagnostics")
-        _save(fig, out / f"diagnostics_{task}_{algo}.png", written)
+        fig.suptitle(f"{TASK_TITLES.get(task, task)}, {_title(algo, setting)}: diagnostics")
+        _save(fig, out / f"diagnostics_{task}_{algo}{_file_suffix(setting)}.png", written)
     return written
 
 

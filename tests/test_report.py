@@ -140,3 +140,62 @@ def test_runs_short_of_the_budget_are_left_out_of_their_groups_means(tmp_path):
 
 def test_step_axes_read_in_thousands_and_millions():
     assert [report._steps_label(v) for v in (0, 500, 2000, 12500, 150000, 1.5e6)] == ["0", "500", "2k", "12.5k", "150k", "1.5M"]
+
+
+def _config_yaml(*overrides: str, drop: str | None = None) -> str:
+    """A run's config.yaml as train.py writes it (the composed recipe config, resolved), with ``drop``
+    removed as from a config written before that setting existed."""
+    from hydra import compose, initialize_config_dir
+    from omegaconf import OmegaConf, open_dict
+
+    with initialize_config_dir(config_dir=str(Path(report.__file__).parent / "conf"), version_base="1.3"):
+        cfg = compose(config_name="config", overrides=["task=peg_insertion_insert", "algo=ours", *overrides])
+    if drop is not None:
+        section, key = drop.split(".")
+        with open_dict(cfg):
+            del cfg[section][key]
+    return OmegaConf.to_yaml(cfg, resolve=True)
+
+
+def test_runs_with_different_settings_are_kept_apart_and_named_by_what_they_changed(tmp_path):
+    runs = tmp_path / "runs"
+    task = "peg_insertion_insert"
+    # seeds 0 and 1 at the paper's setting; seed 1 ran with other bookkeeping (threads, length, folder,
+    # speed paths, logging) and from a config written before algo.initial_logit_bias existed: still one setting
+    a = fabricate(runs, task, "ours", 0, 0.1, 2.0, 10, 0.3, 0.9)
+    (a / "config.yaml").write_text(_config_yaml("seed=0", "threads=1"))
+    b = fabricate(runs, task, "ours", 1, 0.1, 4.0, 30, 0.5, 1.0)
+    (b / "config.yaml").write_text(_config_yaml(
+        "seed=1", "threads=2", "total_steps=5000", "sweep_dir=elsewhere", "resume=auto", "speed.batched_acting=true",
+        "checkpoint_every=777", "log_every=10", drop="algo.initial_logit_bias"))
+    # two options, one seed each: a pessimistic start, and a smaller prior scale with it
+    c = fabricate(runs, task, "ours", 2, 0.1, 1.0, 50, 0.1, 0.2)
+    (c / "config.yaml").write_text(_config_yaml("seed=2", "algo.initial_logit_bias=-4"))
+    d = fabricate(runs, task, "ours", 3, 0.1, 3.0, 70, 0.2, 0.4)
+    (d / "config.yaml").write_text(_config_yaml("seed=3", "algo.initial_logit_bias=-4", "algo.prior_scale=1.0"))
+    written = report.report([runs], tmp_path / "out")
+    table = (tmp_path / "out" / "table1.md").read_text()
+    # seeds 0 and 1 averaged (returns 2, 4 -> 3.00 ± 1.00; manual 10, 30 -> 20 ± 10), the paper's numbers beside
+    assert ("| peg-insertion (insert) | ours (paper's setting) | 0.1 | 2 | 1000 | 3.00 ± 1.00 (paper 29.20) | "
+            "20 ± 10 (paper 343) |") in table
+    # each option alone, named by what it changed from the recipe's defaults, no paper numbers beside it
+    assert ("| peg-insertion (insert) | ours (algo.initial_logit_bias=-4) | 0.1 | 1 | 1000 | 1.00 ± 0.00 | "
+            "50 ± 0 | 10.0% ± 0.0 | 20.0% ± 0.0 |") in table
+    assert ("| peg-insertion (insert) | ours (algo.initial_logit_bias=-4, algo.prior_scale=1.0) | 0.1 | 1 | 1000 | "
+            "3.00 ± 0.00 | 70 ± 0 |") in table
+    assert table.index("ours (paper's setting)") < table.index("ours (algo.initial_logit_bias=-4)")
+    groups = report.figure3_groups(report.find_runs([runs]))
+    assert {key: sorted(r.summary["seed"] for r in members) for key, (members, _) in groups.items()} == {
+        "ours (paper's setting)": [0, 1], "ours (algo.initial_logit_bias=-4)": [2],
+        "ours (algo.initial_logit_bias=-4, algo.prior_scale=1.0)": [3]}
+    assert sorted(p.name for p in written["fig5"]) == [
+        "fig5_peg_insertion_insert_ours.png", "fig5_peg_insertion_insert_ours_algo.initial_logit_bias-4.png",
+        "fig5_peg_insertion_insert_ours_algo.initial_logit_bias-4_algo.prior_scale1.0.png"]
+    # without the options the same two runs are one group and the table reads as before
+    for folder in (c, d):
+        for path in folder.iterdir():
+            path.unlink()
+        folder.rmdir()
+    report.report([runs], tmp_path / "alone")
+    assert "| peg-insertion (insert) | ours | 0.1 | 2 | 1000 | 3.00 ± 1.00 (paper 29.20) |" in (
+        tmp_path / "alone" / "table1.md").read_text()
