@@ -236,13 +236,18 @@ def assign_settings(runs: list[Run]) -> None:
                     f"{k}={'(unset)' if own.get(k, missing) is missing else _value_text(own[k])}" for k in changed)
 
 
+def _is_paper_setting(setting: str) -> bool:
+    """The only setting of its group, or the recipe's defaults (the paper's)."""
+    return setting in ("", PAPER_SETTING)
+
+
 def _title(algo: str, setting: str) -> str:
     return ALGO_TITLES.get(algo, algo) + (f" ({setting})" if setting else "")
 
 
 def _file_suffix(setting: str) -> str:
     """``""`` for the only or the paper's setting, else the setting as a file-name part."""
-    if setting in ("", PAPER_SETTING):
+    if _is_paper_setting(setting):
         return ""
     return "_" + re.sub(r"[^A-Za-z0-9_.-]+", "_", setting.replace("=", ""))
 
@@ -318,7 +323,7 @@ def _complete(groups: dict) -> tuple[dict, list[Run]]:
 
 def _row_order(task: str, algo: str, setting: str, p_thresh) -> tuple:
     order = list(TASK_TITLES)
-    return (order.index(task) if task in order else 99, algo, setting not in ("", PAPER_SETTING), setting,
+    return (order.index(task) if task in order else 99, algo, not _is_paper_setting(setting), setting,
             p_thresh or 0)
 
 
@@ -332,7 +337,7 @@ def table1(runs: list[Run]) -> str:
         "|---|---|---|---|---|---|---|---|---|",
     ]
     for (task, algo, setting, p_thresh), members in sorted(groups.items(), key=lambda kv: _row_order(*kv[0])):
-        paper = PAPER_TABLE1.get((task, algo)) if setting in ("", PAPER_SETTING) else None
+        paper = PAPER_TABLE1.get((task, algo)) if _is_paper_setting(setting) else None
         cells = []
         for metric, kind, index in zip(METRICS, kinds, range(4)):
             mean, std = _mean_std([r.summary[metric] for r in members])
@@ -448,9 +453,9 @@ def figure3_groups(task_runs: list[Run]) -> dict[str, tuple[list[Run], str]]:
 
 def _line_style(setting: str, others: list[str]) -> str:
     """Solid for the only or the paper's setting; dashed, dotted, dash-dotted for the others in turn."""
-    if setting in ("", PAPER_SETTING):
+    if _is_paper_setting(setting):
         return "-"
-    variants = sorted(s for s in others if s not in ("", PAPER_SETTING))
+    variants = sorted(s for s in others if not _is_paper_setting(s))
     return ("--", ":", "-.")[variants.index(setting) % 3]
 
 
