@@ -90,6 +90,11 @@ class MujocoResetEnv(gymnasium.Env):
     times per action, checks actions, latches the irrecoverable flag, saves and restores the simulator
     state, and renders off-screen.
 
+    Actions are taken as sent, as in the authors' release: an action outside the action box (a policy's
+    output plus unclipped exploration noise) reaches the motors clamped to their control range (as
+    MuJoCo clamps a limited motor), and the rewards' control terms see it unclipped. The action box is
+    the control range, or ``[-action_bound, action_bound]`` where a task's policy uses less of it.
+
     Every step's ``info`` holds ``reset_success`` (``np.bool_``, the at-initial-state check), ``reset_reward``
     (``np.float64`` in [0, 1], the shaped reset reward) and ``irrecoverable`` (``np.bool_``; once set it stays set until
     :meth:`reset`; always ``False`` for tasks without irrecoverable states), plus the forward reward's
@@ -105,6 +110,9 @@ class MujocoResetEnv(gymnasium.Env):
     p_thresh: ClassVar[float] = 0.0
     has_irrecoverable: ClassVar[bool] = False
     default_camera: ClassVar[str | int] = -1
+    #: The action box ``[-action_bound, action_bound]`` where the task's actions are narrower than the
+    #: motors' control range (``None``: the control range). Actions reach the motors unscaled.
+    action_bound: ClassVar[float | None] = None
 
     def __init__(self, *, render_mode: str | None = None, width: int = 480, height: int = 480, camera: str | int | None = None):
         if render_mode not in (None, "rgb_array"):
@@ -125,9 +133,13 @@ class MujocoResetEnv(gymnasium.Env):
         self._irrecoverable = False
         self.dt = float(self.model.opt.timestep) * self.frame_skip
         self.metadata = {**type(self).metadata, "render_fps": int(round(1.0 / self.dt))}
-        low, high = self.model.actuator_ctrlrange.T.astype(np.float32)
-        self.action_space = spaces.Box(low, high, dtype=np.float32)
-        self._action_low, self._action_high = low.astype(np.float64), high.astype(np.float64)
+        ctrl_low, ctrl_high = self.model.actuator_ctrlrange.T.astype(np.float64)
+        self._ctrl_low, self._ctrl_high = ctrl_low, ctrl_high
+        low, high = ctrl_low, ctrl_high
+        if self.action_bound is not None:
+            low, high = np.maximum(low, -self.action_bound), np.minimum(high, self.action_bound)
+        self.action_space = spaces.Box(low.astype(np.float32), high.astype(np.float32), dtype=np.float32)
+        self._action_low, self._action_high = low, high
         mujoco.mj_forward(self.model, self.data)
         obs_dim = self._observation().shape[0]
         self.observation_space = spaces.Box(-np.inf, np.inf, shape=(obs_dim,), dtype=np.float32)
@@ -170,7 +182,7 @@ class MujocoResetEnv(gymnasium.Env):
     def step(self, action):
         action = self._check_action(action)
         before = self._before_step()
-        self.data.ctrl[:] = action
+        self.data.ctrl[:] = np.clip(action, self._ctrl_low, self._ctrl_high)  # as MuJoCo clamps a limited motor
         mujoco.mj_step(self.model, self.data, nstep=self.frame_skip)
         observation = self._observation()
         if not np.all(np.isfinite(observation)):
@@ -211,7 +223,7 @@ class MujocoResetEnv(gymnasium.Env):
             )
         if not np.all(np.isfinite(action)):
             raise ValueError(f"{type(self).__name__} got a non-finite action (NaN or inf): {action.tolist()}.")
-        return np.clip(action, self._action_low, self._action_high)
+        return action
 
     # ------------------------------------------------------------------ state
     @property

@@ -6,7 +6,7 @@ import math
 import mujoco
 import numpy as np
 
-from ._mujoco import MujocoResetEnv, asset_path
+from ._mujoco import MujocoResetEnv
 
 __all__ = ["PegInsertionEnv", "PEG_GOAL", "PEG_START", "INSERT_START_QPOS", "REMOVE_START_QPOS"]
 
@@ -27,56 +27,139 @@ _JOINTS = (
     "r_wrist_flex_joint",
     "r_wrist_roll_joint",
 )
-_RANGES = ((-1.571, 1.715), (-0.524, 1.396), (-3.142, 0.8), (-2.321, 0.0), (-1.571, 1.571), (-2.094, 0.0), (-1.571, 1.571))
+_RANGES = ((-1.571, 1.714602), (-0.5236, 1.3963), (-3.1416, 0.8), (-2.3213, 0.0), (-1.571, 1.571), (-2.094, 0.0), (-1.571, 1.571))
 
-HOLE_CENTER = (0.0, 0.3)
-HOLE_HALF_WIDTH_BOTTOM = 0.034  # the 6.8 cm opening at the bottom of the funnel
-HOLE_HALF_WIDTH_TOP = 0.040  # the funnel's mouth, flush with the table's opening
-TABLE_TOP = -0.4
 PEG_RADIUS = 0.028
 PEG_HALF_LENGTH = 0.15
 
+# -------------------------------------------------------------------------------- the model
+# The arm, the peg and the table with its hole, written out from the physical parameters of the
+# authors' release (docs/method.md section 9; docs/release-audit.md lists each number).
+TIMESTEP = 0.01
+SOLVER_ITERATIONS = 20
+JOINT_ARMATURE = 0.04
+DEFAULT_DAMPING = 1.0
+GEOM_FRICTION = (0.5, 0.1, 0.1)
+GEOM_MARGIN = 0.002
+DEFAULT_DENSITY = 1000.0
+PEG_DENSITY = 2000.0
+MOTOR_RANGE = 2.0  # the motors' control range (N m); the policy's actions in [-1, 1] use half of it
 
-def add_table_with_hole(spec: mujoco.MjSpec) -> None:
-    """The table (top at z = -0.4, 0.4 x 0.6 m) with a square funnel-shaped hole centred at (0, 0.3).
+#: (joint, axis, damping) in chain order; ranges in ``_RANGES``.
+_JOINT_AXES = ((0, 0, 1), (0, 1, 0), (1, 0, 0), (0, 1, 0), (1, 0, 0), (0, 1, 0), (1, 0, 0))
+_DAMPING = (10.0, 10.0, 0.1, 1.0, 0.1, 0.1, 0.1)
+#: Each joint's link: the link's origin in its parent's frame and its capsules (from, to, radius).
+_LINKS = (
+    ((0.0, -0.188, 0.0), (((0, 0, -0.4), (0, 0, 0.2), 0.1),)),          # shoulder pan: the torso column
+    ((0.1, 0.0, 0.0), (((0, -0.1, 0), (0, 0.1, 0), 0.1),)),             # shoulder lift
+    ((0.0, 0.0, 0.0), (((-0.1, 0, 0), (0.1, 0, 0), 0.02), ((0, 0, 0), (0.4, 0, 0), 0.06))),  # upper-arm roll + upper arm
+    ((0.4, 0.0, 0.0), (((0, -0.02, 0), (0, 0.02, 0), 0.06),)),          # elbow flex
+    ((0.0, 0.0, 0.0), (((-0.1, 0, 0), (0.1, 0, 0), 0.02), ((0, 0, 0), (0.321, 0, 0), 0.05))),  # forearm roll + forearm
+    ((0.321, 0.0, 0.0), (((0, -0.02, 0), (0, 0.02, 0), 0.01),)),        # wrist flex
+    ((0.0, 0.0, 0.0), (((-0.02, 0, 0), (0.02, 0, 0), 0.01), ((0.05, 0, -0.02), (0.05, 0, 0.02), 0.05))),  # wrist roll + palm
+)
+#: Two spheres on the torso column (radius 0.05 and 0.03), part of the shoulder-pan link's mass.
+_HEAD_SPHERES = (((-0.06, 0.05, 0.2), 0.05), ((0.06, 0.05, 0.2), 0.05), ((-0.06, 0.09, 0.2), 0.03), ((0.06, 0.09, 0.2), 0.03))
+#: The gripper's two fingers in the palm's frame: (base, first segment's end, tip segment's end), radius 0.01.
+_FINGERS = (
+    ((0.07691, 0.03, 0.0), (0.09137, 0.00495, 0.0), (0.09137, 0.0, 0.0)),
+    ((0.07691, -0.03, 0.0), (0.09137, -0.00495, 0.0), (0.09137, 0.0, 0.0)),
+)
+TOOL_OFFSET = 0.18  # the tool frame (the peg's centre) along the palm's x axis
 
-    The funnel's walls run from z = -0.52 to -0.42, their inner faces tilted so that the opening
-    narrows from 8.0 cm at the top to 6.8 cm at the bottom; the hole's floor is at z = -0.55.
+#: The hole's four walls: centre, half sizes, rotation (axis, angle in rad); 1 cm x 2 cm x 10 cm plates
+#: leaning 0.05 rad outwards, their inner faces 6.2 cm apart at the bottom.
+_HOLE_WALLS = (
+    ((0.034, 0.3, -0.47), (0.003, 0.01, 0.05), ((0, 1, 0), 0.05)),
+    ((-0.034, 0.3, -0.47), (0.003, 0.01, 0.05), ((0, 1, 0), -0.05)),
+    ((0.0, 0.334, -0.47), (0.01, 0.003, 0.05), ((1, 0, 0), -0.05)),
+    ((0.0, 0.266, -0.47), (0.01, 0.003, 0.05), ((1, 0, 0), 0.05)),
+)
+#: The hole's floor and the table's four slabs (top at z = -0.4) around a 6.6 cm square opening.
+_TABLE = (
+    ((0.0, 0.3, -0.55), (0.2, 0.2, 0.05)),
+    ((0.216, 0.3, -0.45), (0.183, 0.3, 0.05)),
+    ((-0.216, 0.3, -0.45), (0.183, 0.3, 0.05)),
+    ((0.0, 0.516, -0.45), (0.032, 0.183, 0.05)),
+    ((0.0, 0.084, -0.45), (0.032, 0.183, 0.05)),
+)
+
+
+def _quat(axis, angle: float) -> list[float]:
+    half = 0.5 * angle
+    return [math.cos(half), *(math.sin(half) * np.asarray(axis, dtype=float))]
+
+
+def build_peg_spec() -> mujoco.MjSpec:
+    """The peg-insertion model (both tasks), built from the numbers above.
+
+    Zero gravity, RK4 at 0.01 s, 20 solver iterations. Joints: armature 0.04, limited, damping per
+    ``_DAMPING``. Geoms: density 1000 unless stated, friction (0.5, 0.1, 0.1), margin 2 mm, condim 1;
+    the arm's geoms (contype 0, conaffinity 1) touch the table and hole (contype 1, conaffinity 1) but
+    not each other or the peg; the peg (contype 2, conaffinity 1, density 2000) touches the table and
+    hole. Seven motors on the joints, control range +-2.
     """
+    spec = mujoco.MjSpec()
+    spec.modelname = "peg_insertion"
+    spec.compiler.degree = False
+    spec.compiler.inertiafromgeom = mujoco.mjtInertiaFromGeom.mjINERTIAFROMGEOM_TRUE
+    spec.option.timestep = TIMESTEP
+    spec.option.gravity = [0.0, 0.0, 0.0]
+    spec.option.iterations = SOLVER_ITERATIONS
+    spec.option.integrator = mujoco.mjtIntegrator.mjINT_RK4
+    defaults = spec.default
+    defaults.joint.armature = JOINT_ARMATURE
+    defaults.joint.damping = [DEFAULT_DAMPING, 0.0, 0.0]  # linear damping (this MuJoCo's higher terms zero)
+    defaults.joint.limited = mujoco.mjtLimited.mjLIMITED_TRUE
+    defaults.geom.friction = list(GEOM_FRICTION)
+    defaults.geom.margin = GEOM_MARGIN
+    defaults.geom.condim = 1
+    defaults.geom.contype = 0
+    defaults.geom.conaffinity = 1
+    defaults.geom.density = DEFAULT_DENSITY
+    capsule, sphere = mujoco.mjtGeom.mjGEOM_CAPSULE, mujoco.mjtGeom.mjGEOM_SPHERE
+    grey = [0.6, 0.6, 0.6, 1.0]
+
     world = spec.worldbody
-    cx, cy = HOLE_CENTER
-    a, b = HOLE_HALF_WIDTH_TOP, HOLE_HALF_WIDTH_BOTTOM
-    rgba = [0.6, 0.45, 0.3, 1.0]
+    world.add_light(pos=[0, 0, 3], dir=[0, 0, -1], diffuse=[0.5, 0.5, 0.5])
+    body = world
+    for name, axis, (lo, hi), damping, (pos, capsules) in zip(_JOINTS, _JOINT_AXES, _RANGES, _DAMPING, _LINKS):
+        body = body.add_body(name=name.replace("_joint", "_link"), pos=list(pos))
+        body.add_joint(name=name, type=mujoco.mjtJoint.mjJNT_HINGE, axis=list(axis), range=[lo, hi], damping=[damping, 0.0, 0.0])
+        for a, b, radius in capsules:
+            body.add_geom(type=capsule, fromto=[*a, *b], size=[radius, 0, 0], rgba=grey)
+        if name == "r_shoulder_pan_joint":
+            for centre, radius in _HEAD_SPHERES:
+                body.add_geom(type=sphere, pos=list(centre), size=[radius, 0, 0], rgba=[0.3, 0.3, 0.3, 1.0])
+    palm = body
+    for base, first, tip in _FINGERS:
+        finger = palm.add_body(pos=list(base))
+        finger.add_geom(type=capsule, fromto=[0, 0, 0, *first], size=[0.01, 0, 0], rgba=grey)
+        finger.add_body(pos=list(first)).add_geom(type=capsule, fromto=[0, 0, 0, *tip], size=[0.01, 0, 0], rgba=grey)
+    tool = palm.add_body(name="tool", pos=[TOOL_OFFSET, 0.0, 0.0])
+    tool.add_geom(
+        name="peg", type=mujoco.mjtGeom.mjGEOM_CYLINDER, fromto=[0, 0, -PEG_HALF_LENGTH, 0, 0, PEG_HALF_LENGTH],
+        size=[PEG_RADIUS, 0, 0], density=PEG_DENSITY, contype=2, conaffinity=1, rgba=[0.2, 0.5, 0.9, 1.0],
+    )
+    for end, z, rgba in (("bottom", -PEG_HALF_LENGTH, [1, 0, 0, 1]), ("top", PEG_HALF_LENGTH, [0, 1, 0, 1])):
+        # the peg's ends: spheres of the peg's radius (they touch the table like the arm's geoms)
+        tool.add_geom(name=f"peg_{end}", type=sphere, pos=[0.0, 0.0, z], size=[PEG_RADIUS, 0, 0], rgba=rgba)
+        tool.add_site(name=end, pos=[0.0, 0.0, z], size=[0.01, 0, 0], rgba=rgba)
 
-    def box(name, center, half, quat=(1.0, 0.0, 0.0, 0.0), color=rgba):
-        world.add_geom(
-            name=name, type=mujoco.mjtGeom.mjGEOM_BOX, pos=list(center), size=list(half), quat=list(quat),
-            rgba=color, contype=1, conaffinity=1,
+    box = mujoco.mjtGeom.mjGEOM_BOX
+    for i, (centre, half, (axis, angle)) in enumerate(_HOLE_WALLS):
+        world.add_geom(name=f"hole_wall{i}", type=box, pos=list(centre), size=list(half), quat=_quat(axis, angle),
+                       contype=1, conaffinity=1, rgba=[0.7, 0.7, 0.7, 1.0])
+    for i, (centre, half) in enumerate(_TABLE):
+        world.add_geom(name="hole_floor" if i == 0 else f"table{i}", type=box, pos=list(centre), size=list(half),
+                       contype=1, conaffinity=1, rgba=[0.5, 0.5, 0.5, 1.0] if i == 0 else [0.6, 0.6, 0.6, 1.0])
+    for name in _JOINTS:
+        spec.add_actuator(
+            name=name.replace("_joint", "_motor"), target=name, trntype=mujoco.mjtTrn.mjTRN_JOINT,
+            ctrllimited=mujoco.mjtLimited.mjLIMITED_TRUE, ctrlrange=[-MOTOR_RANGE, MOTOR_RANGE],
         )
-
-    # Table slab around the opening: z from -0.42 to -0.40, x in [-0.2, 0.2], y in [0, 0.6].
-    zc, hz = TABLE_TOP - 0.01, 0.01
-    box("table_left", (cx - (0.2 + a) / 2, cy, zc), ((0.2 - a) / 2, 0.3, hz))
-    box("table_right", (cx + (0.2 + a) / 2, cy, zc), ((0.2 - a) / 2, 0.3, hz))
-    box("table_near", (cx, cy - (0.3 + a) / 2, zc), (a, (0.3 - a) / 2, hz))
-    box("table_far", (cx, cy + (0.3 + a) / 2, zc), (a, (0.3 - a) / 2, hz))
-    # Funnel walls from z = -0.52 to -0.42, 1 cm thick, inner face from half-width b (bottom) to a (top).
-    z0, z1, thick = -0.52, -0.42, 0.01
-    tilt = math.atan2(a - b, z1 - z0)
-    half_height = 0.5 * math.hypot(a - b, z1 - z0)
-    mid_inner, mid_z = 0.5 * (a + b), 0.5 * (z0 + z1)
-    # outward normal of the +x wall's inner face, in the x-z plane
-    nx, nz = math.cos(tilt), -math.sin(tilt)
-    off = mid_inner + 0.5 * thick * nx
-    zw = mid_z + 0.5 * thick * nz
-    length = a + thick
-    c, s = math.cos(tilt / 2), math.sin(tilt / 2)
-    wall_color = [0.5, 0.35, 0.25, 1.0]
-    box("hole_wall_px", (cx + off, cy, zw), (0.5 * thick, length, half_height), (c, 0.0, s, 0.0), wall_color)
-    box("hole_wall_nx", (cx - off, cy, zw), (0.5 * thick, length, half_height), (c, 0.0, -s, 0.0), wall_color)
-    box("hole_wall_py", (cx, cy + off, zw), (length, 0.5 * thick, half_height), (c, -s, 0.0, 0.0), wall_color)
-    box("hole_wall_ny", (cx, cy - off, zw), (length, 0.5 * thick, half_height), (c, s, 0.0, 0.0), wall_color)
-    box("hole_floor", (cx, cy, -0.56), (a + thick, a + thick, 0.01), color=wall_color)
+    world.add_camera(name="side", pos=[1.3, 0.25, 0.2], xyaxes=[0, 1, 0, -0.35, 0, 0.94])
+    return spec
 
 
 class PegInsertionEnv(MujocoResetEnv):
@@ -86,16 +169,20 @@ class PegInsertionEnv(MujocoResetEnv):
     it into the hole; ``forward="remove"`` (peg-insertion-remove) starts with the peg in the hole and
     rewards bringing it back to the insert task's start. Each task's reset agent does the other task.
 
-    Model: gymnasium's ``pusher_v5.xml`` arm (timestep 0.01 s, frame skip 5, so 0.05 s per step;
-    armature 0.04; motors with control range [-2, 2]) with its table, object and goal removed and the
-    authors' geometry applied: base at (0, -0.188, 0); joint ranges (rad) shoulder pan -1.571..1.715,
-    shoulder lift -0.524..1.396, upper-arm roll -3.142..0.8, elbow flex -2.321..0, forearm roll and
-    wrist roll -1.571..1.571, wrist flex -2.094..0; damping 10 on the shoulder pan (the pusher's 1.0 on
-    the shoulder lift and 0.1 elsewhere); a tool frame 0.18 m beyond the wrist holding the peg (a
-    cylinder of radius 0.028 along the tool's z axis from -0.15 to +0.15, ends tracked as sites
-    ``bottom`` and ``top``). The table (top z = -0.4, 0.4 x 0.6 m) has a funnel-shaped square hole
-    centred at (0, 0.3): walls from z = -0.52 to -0.42, opening 8.0 cm at the mouth narrowing to 6.8
-    cm, floor at z = -0.55. Only the peg, the gripper and the table collide.
+    Model (:func:`build_peg_spec`, written from the physical parameters of the authors' release):
+    zero gravity, RK4 at 0.01 s, frame skip 5 (0.05 s per step), 20 solver iterations; joints with
+    armature 0.04 and damping 10 (shoulder pan and lift), 1 (elbow flex) and 0.1 (the rolls and the
+    wrist flex); capsule links at density 1000 (arm 46.2 kg); a tool frame 0.18 m beyond the wrist
+    holding the peg, a cylinder of radius 0.028 from -0.15 to +0.15 along the tool's z axis at density
+    2000 with a sphere of its radius at each end (1.66 kg; the ends tracked as sites ``bottom`` and
+    ``top``); motors with control range [-2, 2] of which the actions use [-1, 1] (the release sends its
+    actor's tanh output unscaled). The table's top is at z = -0.4 around a 6.6 cm square opening
+    centred at (0, 0.3), with four 1 cm wall plates leaning 0.05 rad outwards from z = -0.52 to -0.42
+    and the hole's floor at z = -0.5. The arm's geoms touch the table but not each other or the peg;
+    the peg touches the table. At the remove task's start (the release's joint angles) the peg's
+    bottom sphere lies 2.8 cm inside the hole's floor and the palm 2 cm inside the table, as in the
+    release's model: the contacts push the peg up and out of the hole within about four steps if
+    nothing holds it.
 
     With ``peg`` = (bottom xyz, top xyz), ``goal`` = ((0, 0.3, -0.5), (0, 0.3, -0.2)) and ``start`` =
     ((0.106, 0.157, 0.150), (0.244, -0.094, 0.237)): ``d_goal = |peg - goal|``, ``d_start = |peg - start|``,
@@ -106,7 +193,7 @@ class PegInsertionEnv(MujocoResetEnv):
     ==================  ==========================================================================
     observation (14)    0-6 joint angles (rad): shoulder pan, shoulder lift, upper-arm roll, elbow
                         flex, forearm roll, wrist flex, wrist roll; 7-13 their velocities (rad/s)
-    action (7)          joint torques in [-2, 2], same order
+    action (7)          joint torques in [-1, 1] (N m), same order, sent unscaled
     forward reward      insert: ``insert``; remove: ``remove``
     reset_success       insert: ``d_start < 0.2``; remove: ``in_hole``
     reset_reward        insert: ``remove``; remove: ``insert``
@@ -117,7 +204,7 @@ class PegInsertionEnv(MujocoResetEnv):
     H_f, p_thresh       100, 0.1
     ==================  ==========================================================================
 
-    All definitions follow the authors' release; the funnel's exact wall angles are ours.
+    All definitions follow the authors' release (docs/release-audit.md).
 
     Args:
         forward (str): ``"insert"`` or ``"remove"``.
@@ -131,6 +218,7 @@ class PegInsertionEnv(MujocoResetEnv):
     """
 
     frame_skip = 5
+    action_bound = 1.0
     forward_horizon = 100
     p_thresh = 0.1
     default_camera = "side"
@@ -148,26 +236,7 @@ class PegInsertionEnv(MujocoResetEnv):
         self._top = self.model.site("top").id
 
     def _build_spec(self) -> mujoco.MjSpec:
-        spec = mujoco.MjSpec.from_file(asset_path("gymnasium", "pusher_v5.xml"))
-        spec.delete(spec.geom("table"))
-        spec.delete(spec.body("object"))
-        spec.delete(spec.body("goal"))
-        spec.body("r_shoulder_pan_link").pos = [0.0, -0.188, 0.0]
-        for name, (lo, hi) in zip(_JOINTS, _RANGES):
-            spec.joint(name).range = [lo, hi]
-        damping = spec.joint("r_shoulder_pan_joint").damping
-        damping[0] = 10.0  # the linear damping coefficient
-        spec.joint("r_shoulder_pan_joint").damping = damping
-        tool = spec.body("r_wrist_roll_link").add_body(name="tool", pos=[0.18, 0.0, 0.0])
-        tool.add_geom(
-            name="peg", type=mujoco.mjtGeom.mjGEOM_CYLINDER, fromto=[0, 0, -PEG_HALF_LENGTH, 0, 0, PEG_HALF_LENGTH],
-            size=[PEG_RADIUS, 0, 0], rgba=[0.2, 0.5, 0.9, 1.0], contype=1, conaffinity=1,
-        )
-        tool.add_site(name="bottom", pos=[0.0, 0.0, -PEG_HALF_LENGTH], size=[0.01, 0, 0], rgba=[1, 0, 0, 1])
-        tool.add_site(name="top", pos=[0.0, 0.0, PEG_HALF_LENGTH], size=[0.01, 0, 0], rgba=[0, 1, 0, 1])
-        add_table_with_hole(spec)
-        spec.worldbody.add_camera(name="side", pos=[1.3, 0.25, 0.2], xyaxes=[0, 1, 0, -0.35, 0, 0.94])
-        return spec
+        return build_peg_spec()
 
     def _reset_state(self) -> None:
         start = INSERT_START_QPOS if self.forward == "insert" else REMOVE_START_QPOS

@@ -7,6 +7,7 @@ from typing import Any
 
 import torch
 from omegaconf import DictConfig, OmegaConf
+from tensordict import TensorDict
 from tensordict.nn import TensorDictSequential
 from torch import nn
 from torchrl.modules import OrnsteinUhlenbeckProcessModule, TanhModule
@@ -41,9 +42,12 @@ def make_actor(obs_dim: int, action_spec, hidden_sizes, parts: accel.Components 
 
 
 def with_exploration(actor, action_spec, cfg: DictConfig) -> TensorDictSequential:
+    """The policy plus Ornstein-Uhlenbeck noise; ``exploration.clip: false`` (the release) leaves the noisy
+    action outside the action box (the env clamps it at the motors' range; buffers and trigger see it as drawn)."""
     noise = OrnsteinUhlenbeckProcessModule(
         spec=action_spec, eps_init=1.0, eps_end=1.0, annealing_num_steps=1,
         theta=cfg.exploration.theta, sigma=cfg.exploration.sigma, dt=cfg.exploration.dt,
+        safe=bool(OmegaConf.select(cfg, "exploration.clip", default=True)),
     )
     return TensorDictSequential(actor, noise)
 
@@ -88,7 +92,10 @@ def make_forward_agent(cfg: DictConfig, obs_dim: int, action_spec, loss_class: t
         {"params": list(loss.actor_network_params.values(True, True)), "lr": cfg.forward.actor_lr},
         {"params": list(loss.value_network_params.values(True, True)), "lr": cfg.forward.critic_lr},
     ])
-    return Agent(actor, loss, optimizer, parts.soft_update(loss, tau=cfg.tau), critic)
+    targets = parts.soft_update(loss, tau=cfg.tau)  # building it copies the networks into their targets
+    if releases_targets(cfg):  # the target actor starts as a network of its own; the target critic as a copy
+        draw_target(loss.target_actor_network_params, make_actor(obs_dim, action_spec, cfg.hidden_sizes, parts))
+    return Agent(actor, loss, optimizer, targets, critic)
 
 
 def make_reset_agent(cfg: DictConfig, obs_dim: int, action_spec) -> Agent:
@@ -100,6 +107,7 @@ def make_reset_agent(cfg: DictConfig, obs_dim: int, action_spec) -> Agent:
         model = parts.ensemble(
             obs_dim, act_dim, num_members=cfg.algo.num_members, hidden_sizes=tuple(cfg.hidden_sizes),
             prior_scale=cfg.algo.prior_scale,
+            prior_bias_draw=OmegaConf.select(cfg, "algo.prior_bias_draw", default="fan_in"),
         )
         bias = OmegaConf.select(cfg, "algo.initial_logit_bias", default=None)
         if bias is not None:  # not the paper's: a pessimistic start, before the targets copy the networks
@@ -126,7 +134,32 @@ def make_reset_agent(cfg: DictConfig, obs_dim: int, action_spec) -> Agent:
             {"params": list(loss.actor_network_params.values(True, True)), "lr": cfg.reset.actor_lr},
             {"params": list(loss.value_network_params.values(True, True)), "lr": cfg.reset.critic_lr},
         ])
-    return Agent(actor, loss, optimizer, parts.soft_update(loss, tau=reset_tau(cfg)), model)
+    targets = parts.soft_update(loss, tau=reset_tau(cfg))  # building it copies the networks into their targets
+    if cfg.algo.name == "ours" and releases_targets(cfg):  # the target classifiers' trained part starts as
+        # networks of their own (the same priors); RCE never reads the reset actor's target
+        fresh = parts.ensemble(obs_dim, act_dim, num_members=cfg.algo.num_members,
+                               hidden_sizes=tuple(cfg.hidden_sizes), prior_scale=0.0)
+        bias = OmegaConf.select(cfg, "algo.initial_logit_bias", default=None)
+        if bias is not None:  # the pessimistic start's output bias holds for the targets too
+            with torch.no_grad():
+                getattr(fresh, f"bias_{fresh.num_layers - 1}").fill_(float(bias))
+        draw_target(loss.target_classifier_network_params, fresh)
+    return Agent(actor, loss, optimizer, targets, model)
+
+
+def releases_targets(cfg: DictConfig) -> bool:
+    """``target_init: release``: the targets the release's network constructors leave (configs without the key: copies)."""
+    return OmegaConf.select(cfg, "target_init", default="copy") == "release"
+
+
+def draw_target(target, fresh: nn.Module) -> None:
+    """Overwrites a loss's target parameters with those of ``fresh``, a newly initialised network of the same
+    layout: the target then starts independent of the network it follows (what the authors' release leaves,
+    whose every network constructor re-initialises all earlier variables and re-syncs only its own target).
+    Entries ``fresh`` lacks (the classifiers' priors) are left shared."""
+    with torch.no_grad():
+        for key, value in TensorDict.from_module(fresh).items(True, True):
+            target.get(key).copy_(value)
 
 
 def reset_tau(cfg: DictConfig) -> float:

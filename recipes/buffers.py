@@ -15,10 +15,13 @@ __all__ = ["make_buffers", "buffer_keys", "ArmReplay", "sampler_fallbacks", "fal
 
 
 def make_buffers(cfg: DictConfig) -> tuple[ReplayBuffer, ReplayBuffer | ArmReplay]:
-    """The forward agent's buffer and the reset agent's (ours: with the n-step transform and the release's
+    """The forward agent's buffer (with ``forward.sampling: episode``, the release's episode-first sampler
+    with windows of one step) and the reset agent's (ours: with the n-step transform and the release's
     episode-first sampler). With ``arms``, ours' reset buffer is one per arm, sampled as one (:class:`ArmReplay`):
     the n-step windows need each arm's steps in time order."""
-    forward_rb = ReplayBuffer(storage=LazyTensorStorage(cfg.forward.buffer_size), batch_size=cfg.forward.batch_size)
+    episodes_first = OmegaConf.select(cfg, "forward.sampling", default="transition") == "episode"
+    forward_rb = ReplayBuffer(storage=LazyTensorStorage(cfg.forward.buffer_size), batch_size=cfg.forward.batch_size,
+                              sampler=EpisodeWindowSampler(1) if episodes_first else None)
     ours = cfg.algo.name == "ours"
     episodes = ours and OmegaConf.select(cfg, "algo.nstep_sampling", default="episode") == "episode"
     arms = arm_count(cfg)
@@ -125,4 +128,6 @@ def buffer_keys(cfg: DictConfig, forward: Agent, reset: Agent) -> tuple[list, li
     else:
         reset_keys += [("next", "reset_reward"), ("next", "reset_success")]  # lnt_batch's rewards
     forward_keys = [nested(key) for key in forward.loss.in_keys]
+    if OmegaConf.select(cfg, "forward.sampling", default="transition") == "episode":
+        forward_keys.append(("collector", "traj_ids"))  # the episode-first sampler's episodes
     return list(dict.fromkeys(forward_keys)), list(dict.fromkeys(reset_keys))

@@ -8,6 +8,7 @@ from pathlib import Path
 from omegaconf import DictConfig, OmegaConf
 
 from torchrl_reset.accel import MATMUL_PRECISIONS
+from torchrl_reset.ensemble import PRIOR_BIAS_DRAWS
 from run_files import Checkpoints
 from torchrl_reset_envs import TASKS
 
@@ -77,6 +78,33 @@ def validate(cfg: DictConfig) -> None:
     compile_agents = OmegaConf.select(cfg, "speed.compile", default=[])
     if not OmegaConf.is_list(compile_agents) or not set(compile_agents) <= {"forward", "reset"}:
         problems.append(f"speed.compile must be a list of agents among forward, reset; got {compile_agents!r}")
+    restart = OmegaConf.select(cfg, "exploration.restart", default="episode")
+    if restart not in ("never", "episode"):
+        problems.append(f"exploration.restart must be never or episode, got {restart!r}")
+    order = OmegaConf.select(cfg, "update_order", default="joint")
+    if order not in ("release", "joint"):
+        problems.append(f"update_order must be release or joint, got {order!r}")
+    draw = OmegaConf.select(cfg, "algo.prior_bias_draw", default="fan_in")
+    if cfg.algo.name == "ours" and draw not in PRIOR_BIAS_DRAWS:
+        problems.append(f"algo.prior_bias_draw must be one of {', '.join(PRIOR_BIAS_DRAWS)}, got {draw!r}")
+    sampling = OmegaConf.select(cfg, "forward.sampling", default="transition")
+    if sampling not in ("episode", "transition"):
+        problems.append(f"forward.sampling must be episode or transition, got {sampling!r}")
+    if arm_count(cfg) is not None and sampling == "episode":
+        problems.append("arms= interleaves the arms' steps in one forward buffer, where episode-first sampling "
+                        "cannot see whole episodes: add forward.sampling=transition")
+    target_init = OmegaConf.select(cfg, "target_init", default="copy")
+    if target_init not in ("release", "copy"):
+        problems.append(f"target_init must be release or copy, got {target_init!r}")
+    for flag in ("exploration.clip",):
+        if not isinstance(OmegaConf.select(cfg, flag, default=True), bool):
+            problems.append(f"{flag} must be true or false, got {OmegaConf.select(cfg, flag)!r}")
+    batched = OmegaConf.select(cfg, "seeds", default=None) is not None or arm_count(cfg) is not None
+    if batched and restart == "never":
+        problems.append("seeds= and arms= restart the exploration noise at every episode (their batched collector "
+                        "does not keep each agent's noise across episodes yet): add exploration.restart=episode")
+    if OmegaConf.select(cfg, "seeds", default=None) is not None and order == "release":
+        problems.append("seeds= batches the updates of its runs as one joint step per agent: add update_order=joint")
     if int(cfg.heat_up) < 0:
         problems.append(f"heat_up must be >= 0, got {cfg.heat_up}")
     arms = arm_count(cfg)

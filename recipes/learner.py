@@ -10,7 +10,7 @@ import time
 from functools import partial
 
 import torch
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 
 from agents import Agent, lnt_batch, with_exploration
 from buffers import buffer_keys, sampler_fallbacks
@@ -20,7 +20,7 @@ from torchrl_reset import BatchedDualCollector, DualCollector
 from torchrl_reset.batched_collector import PooledCollector
 from torchrl_reset.accel import matmul_products
 
-__all__ = ["make_collector", "Learner", "NonFiniteLoss"]
+__all__ = ["make_collector", "Learner", "NonFiniteLoss", "update_agent"]
 
 
 def make_collector(cfg: DictConfig, env, forward: Agent, reset: Agent) -> DualCollector | PooledCollector:
@@ -39,13 +39,58 @@ def make_collector(cfg: DictConfig, env, forward: Agent, reset: Agent) -> DualCo
         max_reset_steps=reset_horizon(cfg),                 # H_r
         min_reset_steps=int(cfg.reset.min_steps),
         total_frames=int(cfg.total_steps),
+        **restart_option(cfg),
     )
     collector.set_seed(int(cfg.seed))
     return collector if arms is None else collector.pooled()
 
 
+def restart_option(cfg: DictConfig) -> dict:
+    """The collector's ``restart_exploration`` from ``exploration.restart`` (configs without it: ``episode``)."""
+    restart = OmegaConf.select(cfg, "exploration.restart", default="episode")
+    return {} if restart == "episode" else {"restart_exploration": False}
+
+
 class NonFiniteLoss(RuntimeError):
     """A loss came out NaN or infinite; no parameter was changed by it."""
+
+
+def update_agent(agent: Agent, sample, names: tuple[str, str], *, release_order: bool, loss=None) -> dict[str, float]:
+    """One update of ``agent`` on ``sample``, then its soft target update; returns the losses (``names``: the
+    actor's entry, then the critic's: ``loss_value`` or ``loss_classifier``).
+
+    ``release_order`` (``update_order: release``, the authors' release, docs/method.md section 9): a step of
+    the critic (classifiers) on its loss, then a step of the actor on its loss computed with the updated
+    critic, on as many rows drawn with replacement from the critic's batch. Otherwise one step on the sum of
+    both losses computed together by ``loss`` (the agent's loss module, or its compiled form)."""
+    actor_name, critic_name = names
+    if release_order:
+        critic = _step(agent, critic_name, getattr(agent.loss, critic_name)(sample)[0])
+        rows = torch.randint(sample.shape[0], (sample.shape[0],), device=sample.device)
+        actor = _step(agent, actor_name, agent.loss.loss_actor(sample[rows])[0])
+        values = {actor_name: actor, critic_name: critic}
+    else:
+        losses = (loss or agent.loss)(sample)
+        total = sum(losses[n] for n in names)
+        if not torch.isfinite(total):
+            raise NonFiniteLoss(", ".join(f"{n}={float(losses[n].detach())}" for n in names))
+        agent.optimizer.zero_grad()
+        total.backward()
+        agent.optimizer.step()
+        values = {n: float(losses[n].detach()) for n in names}
+    agent.targets.step()
+    return values
+
+
+def _step(agent: Agent, name: str, loss: torch.Tensor) -> float:
+    """One optimizer step on ``loss``: only the parameters it reaches have gradients (the others' are None
+    after ``zero_grad``), so Adam moves only those."""
+    if not torch.isfinite(loss):
+        raise NonFiniteLoss(f"{name}={float(loss.detach())}")
+    agent.optimizer.zero_grad()
+    loss.backward()
+    agent.optimizer.step()
+    return float(loss.detach())
 
 
 class Learner:
@@ -65,6 +110,7 @@ class Learner:
         self.matmul_precision, self.robot = matmul_precision, robot
         self.heat_up = int(cfg.heat_up)
         self.ours = cfg.algo.name == "ours"
+        self.release_order = OmegaConf.select(cfg, "update_order", default="joint") == "release"
         compiled = set(cfg.speed.compile)
         self._losses = {name: torch.compile(agent.loss) if name in compiled else agent.loss
                         for name, agent in (("forward", forward), ("reset", reset))}
@@ -123,17 +169,10 @@ class Learner:
         return self.robot is None or self.budget.fits(name, self.robot.time_left())
 
     def _update(self, name: str, sample, names) -> dict[str, float]:
-        """One gradient step of agent ``name`` on ``sample``, then its soft target update."""
+        """One update of agent ``name`` on ``sample`` (:func:`update_agent`), timed, in the run's product precision."""
         agent = self.forward if name == "forward" else self.reset
         started = time.perf_counter()
         with matmul_products(self.matmul_precision):
-            losses = self._losses[name](sample)
-            total = sum(losses[n] for n in names)
-            if not torch.isfinite(total):
-                raise NonFiniteLoss(", ".join(f"{n}={float(losses[n].detach())}" for n in names))
-            agent.optimizer.zero_grad()
-            total.backward()
-            agent.optimizer.step()
-            agent.targets.step()
+            values = update_agent(agent, sample, names, release_order=self.release_order, loss=self._losses[name])
         self.budget.record(name, time.perf_counter() - started)
-        return {n: float(losses[n].detach()) for n in names}
+        return values

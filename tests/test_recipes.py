@@ -61,8 +61,9 @@ def test_every_task_and_algorithm_trains_for_a_few_hundred_steps(tmp_path, task,
     assert (tmp_path / "checkpoints" / "latest").read_text() == "step_0000000200"
     assert (tmp_path / "config.yaml").exists() and any((tmp_path / "logs").rglob("*.csv"))
     if min(int(progress["forward_steps"]), int(progress["reset_steps"])) > 60:  # timed once both made 10 updates
-        for agent in ("forward", "reset"):
-            assert 0 < saved["step_seconds"][agent] < 10
+        timed = {agent: s for agent, s in saved["step_seconds"].items() if s is not None}
+        # a phase that took no step after both passed that point has no time (its entry is None)
+        assert timed and all(0 < s < 10 for s in timed.values())
 
 
 def test_compiled_losses_train_like_the_eager_ones(tmp_path):

@@ -311,10 +311,85 @@ def test_peg_rewards_by_hand():
     # at the insert start with a = (1, ..., 1): control = 1 - 0.1 * 7 = 0.3; remove = 0.8 (1 - d_start ~ 0) + 0.2 * 0.3
     info = env.current_info(np.ones(7))
     assert info["reset_reward"] == pytest.approx(0.86, abs=2e-3)
-    # a = 2 everywhere: |a|^2 = 28, control clipped to 0
+    # a = 2 everywhere (outside the action box, as noise can make it): |a|^2 = 28, control clipped to 0
     assert env.current_info(np.full(7, 2.0))["reset_reward"] == pytest.approx(0.8, abs=2e-3)
+    # a = 0.5 everywhere: |a|^2 = 1.75, control = 0.825; remove = 0.8 + 0.2 * 0.825 = 0.965
+    assert env.current_info(np.full(7, 0.5))["reset_reward"] == pytest.approx(0.965, abs=2e-3)
 
 
+def _capsule_volume(radius, length):
+    return math.pi * radius**2 * length + 4.0 / 3.0 * math.pi * radius**3
+
+
+def _sphere_volume(radius):
+    return 4.0 / 3.0 * math.pi * radius**3
+
+
+@pytest.mark.parametrize("forward", ["insert", "remove"])
+def test_peg_model_has_the_release_physics(forward):
+    """docs/method.md section 9 and docs/release-audit.md: the release's peg-insertion model, read back."""
+    model = PegInsertionEnv(forward).model
+    assert model.opt.timestep == 0.01
+    assert model.opt.integrator == mujoco.mjtIntegrator.mjINT_RK4
+    np.testing.assert_array_equal(model.opt.gravity, 0.0)
+    assert model.opt.iterations == 20
+    # shoulder pan, shoulder lift, upper-arm roll, elbow flex, forearm roll, wrist flex, wrist roll
+    np.testing.assert_allclose(model.dof_damping, [10.0, 10.0, 0.1, 1.0, 0.1, 0.1, 0.1])
+    np.testing.assert_allclose(model.dof_armature, 0.04)
+    np.testing.assert_allclose(model.actuator_ctrlrange, [[-2.0, 2.0]] * 7)
+    np.testing.assert_allclose(model.actuator_gear[:, 0], 1.0)
+    # the peg: a cylinder r = 0.028, 0.3 m long, at 2000 kg/m^3 plus a sphere of r = 0.028 at each end
+    # at 1000: 2000 pi 0.028^2 0.3 + 2000 (4/3) pi 0.028^3 = 1.4778 + 0.1839 = 1.6617 kg
+    peg = 2000.0 * math.pi * 0.028**2 * 0.3 + 2 * 1000.0 * _sphere_volume(0.028)
+    assert model.body_mass[model.body("tool").id] == pytest.approx(peg, rel=1e-6)
+    assert peg == pytest.approx(1.66, abs=0.005)
+    # the shoulder-pan link: a capsule r = 0.1 from z = -0.4 to 0.2 and spheres of 0.05, 0.05, 0.03, 0.03
+    pan = 1000.0 * (_capsule_volume(0.1, 0.6) + 2 * _sphere_volume(0.05) + 2 * _sphere_volume(0.03))
+    assert model.body_mass[model.body("r_shoulder_pan_link").id] == pytest.approx(pan, rel=1e-6)
+    assert pan == pytest.approx(24.31, abs=0.01)
+    # the whole arm and peg: about 47.8 kg (docs/method.md section 9)
+    assert model.body_mass.sum() == pytest.approx(47.8, abs=0.1)
+    # the arm touches the table (contype 0 / conaffinity 1 against 1 / 1), not itself; the peg touches the table
+    table = model.geom("table1").id
+    arm = model.geom_bodyid == model.body("r_upper_arm_roll_link").id
+    assert (model.geom_contype[arm] == 0).all() and (model.geom_conaffinity[arm] == 1).all()
+    assert model.geom_contype[table] == 1 and model.geom_conaffinity[table] == 1
+    assert model.geom_contype[model.geom("peg").id] == 2
+
+
+def test_peg_remove_start_overlaps_the_hole_floor_so_the_peg_is_pushed_out():
+    """The release's numbers put the peg's bottom sphere (r = 0.028) with its centre on the hole's floor
+    (top at z = -0.5): 2.8 cm inside it. Without torque the contact pushes the peg up, out of the hole."""
+    env = PegInsertionEnv("remove")
+    env.reset()
+    data, model = env.data, env.model
+    floor, sphere = model.geom("hole_floor").id, model.geom("peg_bottom").id
+    depth = [data.contact[i].dist for i in range(data.ncon) if {data.contact[i].geom1, data.contact[i].geom2} == {floor, sphere}]
+    assert depth and min(depth) == pytest.approx(-0.028, abs=1e-3)
+    assert env.in_hole()
+    for _ in range(8):
+        env.step(np.zeros(7))
+    assert not env.in_hole()
+
+
+def test_peg_actions_reach_the_motors_unscaled_and_clamped_at_the_control_range():
+    env = PegInsertionEnv("insert")
+    env.reset()
+    np.testing.assert_array_equal(env.action_space.low, -1.0)
+    np.testing.assert_array_equal(env.action_space.high, 1.0)
+    # outside the action box [-1, 1] (a noisy action) but inside the motors' range [-2, 2]: sent as it is
+    action = np.array([0.3, -0.7, 1.0, -1.0, 0.0, 0.25, 1.7])
+    env.step(action)
+    np.testing.assert_allclose(env.data.ctrl, action, atol=1e-7)
+    # gear 1: the torque on each joint is the control itself (N m)
+    np.testing.assert_allclose(env.data.actuator_force, action, atol=1e-7)
+    # beyond the motors' range: clamped at +-2, as MuJoCo clamps a limited motor
+    env.step(np.array([2.5, -3.0, 0.0, 0.0, 0.0, 0.0, 0.0]))
+    np.testing.assert_allclose(env.data.actuator_force[:2], [2.0, -2.0], atol=1e-7)
+    # the control term sees the action as sent: |a|^2 = 1.5^2 = 2.25, control = 1 - 0.225 = 0.775;
+    # remove = 0.8 (1 - d_start ~ 0) + 0.2 * 0.775 = 0.955
+    env.reset()
+    assert env.current_info(np.array([1.5, 0, 0, 0, 0, 0, 0]))["reset_reward"] == pytest.approx(0.955, abs=2e-3)
 # ------------------------------------------------------------------------------- ball in cup
 def test_ball_placed_in_the_cup_gives_catch_reward_one():
     env = BallInCupEnv("catch")
@@ -369,12 +444,12 @@ def test_ball_in_cup_reset_reward_at_start():
 
 # ------------------------------------------------------------------------------- with the collector
 def test_dual_collector_runs_on_a_task_made_by_make_env():
-    env = make_env("peg_insertion_remove", seed=0)
+    env = make_env("peg_insertion_insert", seed=0)
     zero = TensorDictModule(lambda obs: torch.zeros(*obs.shape[:-1], 7), in_keys=["observation"], out_keys=["action"])
     collector = DualCollector(env, zero, zero, max_forward_steps=5, max_reset_steps=10, min_reset_steps=1, total_frames=30)
     batches = list(collector)
     assert sum(b.numel() for b in batches) == 30
-    # zero torque leaves the peg in the hole: every reset episode succeeds after min_reset_steps
+    # zero torque in zero gravity leaves the peg at the start: every reset episode succeeds after min_reset_steps
     assert collector.counters["manual_resets"] == 0 and collector.counters["successful_resets"] == 5
 
 

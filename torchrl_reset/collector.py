@@ -36,6 +36,11 @@ COUNTERS = (
 )
 
 
+def _private_keys(td: TensorDictBase) -> list[str]:
+    """The root entries whose names start with ``_``: state a module keeps in the tensordict (exploration noise)."""
+    return [k for k in td.keys() if isinstance(k, str) and k.startswith("_")]
+
+
 def find_trigger_transforms(env: EnvBase) -> list[ResetTriggerTransform]:
     """Every :class:`ResetTriggerTransform` inside ``env`` (nested transformed envs and Compose included)."""
     found: list[ResetTriggerTransform] = []
@@ -136,8 +141,10 @@ class DualCollector(BaseCollector):
     ``("collector", "traj_ids")`` (one id per episode), so each agent's replay buffer receives only
     its own transitions. The last step of an episode that ends by request, success or manual reset
     carries ``("next", "truncated")`` and ``("next", "done")``. The trigger is enabled during forward
-    episodes only, and ``init_key`` is set on the first step of every episode so that torchrl's
-    exploration modules (Ornstein-Uhlenbeck) restart their noise.
+    episodes only. With ``restart_exploration=True``, ``init_key`` is set on the first step of every
+    episode so that torchrl's exploration modules (Ornstein-Uhlenbeck) restart their noise; with
+    ``False`` (the authors' release) each policy's exploration state carries over from one of its
+    episodes to its next, across the other policy's episodes and manual resets.
 
     If the env *terminates* (``("next", "terminated")``; the paper's tasks never do), the episode
     ends and the collector calls ``env.reset()``, counted under ``terminations``.
@@ -162,6 +169,13 @@ class DualCollector(BaseCollector):
         trigger_key (NestedKey): the trigger flag in the next tensordict. Defaults to the trigger
             transform's ``trigger_key``, else ``"reset_trigger"``.
         init_key (NestedKey): the flag written on the first step of each episode. Defaults to ``"is_init"``.
+        restart_exploration (bool): ``True`` (default): ``init_key`` is True on the first step of every
+            episode. ``False``: it is never True, and the private entries (names starting with ``_``,
+            such as Ornstein-Uhlenbeck's ``_ou_prev_noise`` and ``_ou_steps``) that a policy's
+            exploration writes into the root tensordict are kept per phase: a forward episode continues
+            the forward policy's noise where its last episode left it, a reset episode the reset
+            policy's, whatever happened in between (docs/method.md section 9: the release never restarts
+            its noise). They are saved by :meth:`state_dict`.
         exploration_type (ExplorationType): mode the policies run in. Defaults to ``RANDOM``.
         max_events (int): episode records kept until :meth:`pop_events` drains them. Defaults to 100_000.
 
@@ -201,8 +215,13 @@ class DualCollector(BaseCollector):
         init_key: NestedKey = "is_init",
         exploration_type: ExplorationType = ExplorationType.RANDOM,
         max_events: int = 100_000,
+        restart_exploration: bool = True,
     ) -> None:
         super().__init__()
+        if not isinstance(restart_exploration, bool):
+            raise TypeError(f"restart_exploration must be a bool, got {restart_exploration!r}.")
+        self.restart_exploration = restart_exploration
+        self._exploration: dict[int, dict[str, torch.Tensor]] = {FORWARD: {}, RESET: {}}
 
         self.frames_per_batch = self.requested_frames_per_batch = check_int("frames_per_batch", frames_per_batch)
         env = set_up_loop(self, create_env_fn, forward_policy, reset_policy, max_forward_steps=max_forward_steps,
@@ -300,6 +319,10 @@ class DualCollector(BaseCollector):
             trigger.set_enabled(phase == FORWARD)
         if phase == FORWARD:
             self.example_buffer.add(td)
+        if not self.restart_exploration:  # the phase's own exploration state, where its last episode left it
+            for key in _private_keys(td):
+                del td[key]
+            td.update(self._exploration[phase])
         self._td = td
 
     def _clear_flags(self, root: TensorDictBase) -> TensorDictBase:
@@ -331,9 +354,11 @@ class DualCollector(BaseCollector):
         """``a_t <- pi(s_t)`` (lines 8 and 20), with exploration, then ``env.step``: for a forward action the
         env's trigger scores it first (lines 9-11) and skips the step when it fires."""
         td = self._td
-        td.set(self.init_key, torch.tensor([self._phase_steps == 0], device=td.device))
+        td.set(self.init_key, torch.tensor([self.restart_exploration and self._phase_steps == 0], device=td.device))
         with torch.no_grad(), set_exploration_type(self.exploration_type):
             td = policy(td)
+        if not self.restart_exploration:
+            self._exploration[self._phase] = {key: td.get(key) for key in _private_keys(td)}
         return self.env.step(td)
 
     def _executed(self, td: TensorDictBase, phase: int) -> TensorDictBase:
@@ -341,7 +366,7 @@ class DualCollector(BaseCollector):
         self._phase_steps += 1
         self._frames += 1
         self.counters[f"{PHASE_NAMES[phase]}_steps"] += 1
-        step = td.exclude(*[k for k in td.keys() if isinstance(k, str) and k.startswith("_")])
+        step = td.exclude(*_private_keys(td))
         step.set(("collector", "phase"), torch.tensor(phase, device=td.device))
         step.set(("collector", "traj_ids"), torch.tensor(self._traj_id, device=td.device))
         if step.get(("next", "truncated"), None) is None:
@@ -473,6 +498,7 @@ class DualCollector(BaseCollector):
             env_state=None if self._state_owner is None or self._td is None else self._state_owner.get_simulator_state(),
             example_buffer=self.example_buffer.state_dict(),
             trigger_smoothing=[t._smoothed for t in self.triggers],
+            exploration={PHASE_NAMES[p]: {k: v.clone() for k, v in state.items()} for p, state in self._exploration.items()},
             events=[{**event, "state": event["state"].to_dict()} for event in self._events],
             rng_state=torch.get_rng_state(),
         )
@@ -482,6 +508,8 @@ class DualCollector(BaseCollector):
         self.counters = dict.fromkeys(COUNTERS, 0) | dict(state_dict["counters"])
         self._frames = int(state_dict["frames"])
         self.example_buffer.load_state_dict(state_dict["example_buffer"])
+        saved = state_dict.get("exploration") or {}
+        self._exploration = {p: dict(saved.get(PHASE_NAMES[p], {})) for p in (FORWARD, RESET)}
         self._events = [
             {**event, "state": TensorDict.from_dict(event["state"], batch_size=[])} for event in state_dict.get("events", [])
         ]

@@ -18,12 +18,31 @@ from ._validation import check_int, is_int_at_least
 
 __all__ = [
     "EnsembleValueOperator",
+    "PRIOR_BIAS_DRAWS",
+    "prior_bias_bound",
     "reduce_members",
     "success_classifier",
     "success_probability",
 ]
 
 MEMBER_REDUCTIONS = ("mean", "min", "max")
+PRIOR_BIAS_DRAWS = ("xavier", "fan_in")
+
+
+def prior_bias_bound(draw: str, fan_in: int, fan_out: int) -> float:
+    """The half-width of the uniform draw of a prior layer's bias (``fan_out`` units, ``fan_in`` inputs).
+
+    ``"xavier"`` (the authors' release, docs/method.md section 9): the same Xavier-uniform initializer
+    as the weights, which reads a bias of shape ``[n]`` as fan_in = fan_out = n, so
+    ``sqrt(6 / (n + n)) = sqrt(3 / fan_out)``: 1.73 for a one-unit output layer, about 0.087 for 400
+    units. ``"fan_in"``: ``1 / sqrt(fan_in)``, the bound of ``torch.nn.Linear``'s bias (this project's
+    draw before it followed the release; 0.058 on a 300-unit input).
+    """
+    if draw == "xavier":
+        return math.sqrt(3.0 / fan_out)
+    if draw == "fan_in":
+        return 1.0 / math.sqrt(fan_in)
+    raise ValueError(f"prior_bias_draw must be one of {PRIOR_BIAS_DRAWS}, got {draw!r}.")
 
 
 def success_classifier(logits: torch.Tensor) -> torch.Tensor:
@@ -69,7 +88,8 @@ class EnsembleValueOperator(TensorDictModuleBase):
     batched matrix products (no Python loop over members). This class is the plain reference;
     :class:`torchrl_reset.accel.FastEnsembleValueOperator` computes the same numbers faster.
 
-    Trainable weights use Xavier-uniform initialisation and zero biases (docs/method.md section 5).
+    Trainable weights use Xavier-uniform initialisation and zero biases (docs/method.md section 5);
+    the priors' weights are Xavier-uniform too and their biases are drawn by ``prior_bias_draw``.
 
     Args:
         observation_dim (int): size of the observation (the sum of the sizes of all observation
@@ -80,6 +100,10 @@ class EnsembleValueOperator(TensorDictModuleBase):
         num_members (int): the ensemble size K. Defaults to 5.
         hidden_sizes (sequence of int): hidden layer sizes. Defaults to ``(400, 300)``.
         prior_scale (float): the prior scale beta. ``0`` disables the priors. Defaults to 3.
+        prior_bias_draw (str): how the priors' biases are drawn (:func:`prior_bias_bound`):
+            ``"xavier"``, the release's ``U(+-sqrt(3 / n))`` for a layer of ``n`` units (the output
+            layer's bias, up to +-1.73, gives each member a constant logit offset of up to
+            +-beta 1.73), or ``"fan_in"``, ``U(+-1 / sqrt(fan_in))``. Defaults to ``"xavier"``.
         in_keys (sequence of NestedKey): observation key(s) followed by the action key, last.
             Defaults to ``("observation", "action")``.
         out_keys (sequence of NestedKey): one key for the per-member logits, shaped
@@ -112,6 +136,7 @@ class EnsembleValueOperator(TensorDictModuleBase):
         num_members: int = 5,
         hidden_sizes: Sequence[int] = (400, 300),
         prior_scale: float = 3.0,
+        prior_bias_draw: str = "xavier",
         in_keys: Sequence[NestedKey] = ("observation", "action"),
         out_keys: Sequence[NestedKey] = ("state_action_logit",),
         device: torch.device | str | None = None,
@@ -127,6 +152,7 @@ class EnsembleValueOperator(TensorDictModuleBase):
         prior_scale = float(prior_scale)
         if not math.isfinite(prior_scale) or prior_scale < 0:
             raise ValueError(f"prior_scale must be a finite number >= 0, got {prior_scale!r}.")
+        prior_bias_bound(prior_bias_draw, 1, 1)  # refuses an unknown draw
         in_keys = list(in_keys)
         out_keys = list(out_keys)
         if len(in_keys) < 2:
@@ -140,6 +166,7 @@ class EnsembleValueOperator(TensorDictModuleBase):
         self.num_members = num_members
         self.hidden_sizes = hidden_sizes
         self.prior_scale = prior_scale
+        self.prior_bias_draw = prior_bias_draw
 
         factory = {"device": device, "dtype": dtype}
         sizes_in = (observation_dim, *hidden_sizes)
@@ -162,7 +189,8 @@ class EnsembleValueOperator(TensorDictModuleBase):
         return self.prior_scale > 0
 
     def reset_parameters(self) -> None:
-        """Xavier-uniform weights and zero biases for the trained part; a fresh random prior."""
+        """Xavier-uniform weights and zero biases for the trained part; a fresh random prior (Xavier-uniform
+        weights, biases drawn by ``prior_bias_draw``)."""
         sizes_in = (self.observation_dim, *self.hidden_sizes)
         sizes_out = (*self.hidden_sizes, 1)
         prefixes = ["", "prior_"] if self.has_prior else [""]
@@ -176,7 +204,7 @@ class EnsembleValueOperator(TensorDictModuleBase):
                 bias = getattr(self, f"{prefix}bias_{i}")
                 with torch.no_grad():
                     if prefix:
-                        bound = 1.0 / math.sqrt(fan_in)
+                        bound = prior_bias_bound(self.prior_bias_draw, fan_in, n_out)
                         bias.uniform_(-bound, bound)
                     else:
                         bias.zero_()
@@ -286,4 +314,5 @@ class EnsembleValueOperator(TensorDictModuleBase):
         return (
             f"observation_dim={self.observation_dim}, action_dim={self.action_dim}, "
             f"num_members={self.num_members}, hidden_sizes={self.hidden_sizes}, prior_scale={self.prior_scale}"
+            + (f", prior_bias_draw={self.prior_bias_draw!r}" if self.has_prior else "")
         )

@@ -372,10 +372,9 @@ class RCELoss(LossModule):
             )
         return replay, states, action, examples
 
-    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+    def _classifier_terms(self, replay, states, action, examples):
+        """Eq. 2 on the batch: the classifier loss summed over members, with its label, weight and logits."""
         gamma = self.gamma
-        replay, states, action, examples = self._read(tensordict)
-
         with torch.no_grad():
             label, weight = self._label_and_weight(replay)
             example_action = self._act(examples)  # a ~ pi(s*) in Eq. 2's first term
@@ -384,33 +383,56 @@ class RCELoss(LossModule):
         # label clipped to 0.5 like every label, plus (1 + gamma w) CE(C_i(s_t, a_t); y)
         example_logits = self._classify(examples, example_action, self.classifier_network_params)
         replay_logits = self._classify(states, action.to(example_action.dtype), self.classifier_network_params)
-        loss_examples = (1.0 - gamma) * F.binary_cross_entropy_with_logits(
+        return self._classifier_loss(example_logits, replay_logits, label, weight), label, weight, replay_logits, example_logits
+
+    def _classifier_loss(self, example_logits, replay_logits, label, weight) -> torch.Tensor:
+        loss_examples = (1.0 - self.gamma) * F.binary_cross_entropy_with_logits(
             example_logits, torch.full_like(example_logits, 0.5), reduction="none"
         ).mean(0)
         loss_replay = F.binary_cross_entropy_with_logits(
             replay_logits, label.unsqueeze(-1).expand_as(replay_logits), weight=weight.unsqueeze(-1), reduction="none"
         ).mean(0)
-        loss_classifier = (loss_examples + loss_replay).sum()
+        return (loss_examples + loss_replay).sum()
 
-        # the actor: gradient ascent on the ensemble minimum of C_i(s, pi(s)), the classifier held fixed
+    def _actor_loss(self, states: TensorDictBase) -> torch.Tensor:
+        """The actor: gradient ascent on the ensemble minimum of C_i(s, pi(s)), the classifier held fixed."""
         actor_logits = self._classify(states, self._act(states), self.classifier_network_params.detach())
-        loss_actor = -torch.sigmoid(actor_logits).amin(-1).mean()
+        return -torch.sigmoid(actor_logits).amin(-1).mean()
+
+    def loss_classifier(self, tensordict: TensorDictBase) -> tuple[torch.Tensor, dict]:
+        """The classifier loss alone (Eq. 2; gradient to the trainable classifier parameters only) and its
+        metadata (``label``, ``weight``, ``success_probability``, ``example_classifier``), as torchrl's
+        ``DDPGLoss.loss_value``: for an update of the classifiers before the actor (the release's order)."""
+        loss, label, weight, replay_logits, example_logits = self._classifier_terms(*self._read(tensordict))
+        return loss, self._metadata(label, weight, replay_logits, example_logits)
+
+    def loss_actor(self, tensordict: TensorDictBase) -> tuple[torch.Tensor, dict]:
+        """The actor loss alone, ``-mean_t min_i C_i(s_t, pi(s_t))`` with the classifiers as they are now
+        (gradient to the actor only), as torchrl's ``DDPGLoss.loss_actor``. Reads only the replay states."""
+        replay = self._replay(tensordict)
+        return self._actor_loss(self._require(replay, None, "s_t")), {}
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        """Both losses on one batch with the classifiers as they are before the update (the loss of a joint
+        step); :meth:`loss_classifier` and :meth:`loss_actor` give them one at a time."""
+        replay, states, action, examples = self._read(tensordict)
+        loss_classifier, label, weight, replay_logits, example_logits = self._classifier_terms(replay, states, action, examples)
+        loss_actor = self._actor_loss(states)
         return self._output(loss_classifier, loss_actor, label, weight, replay_logits, example_logits)
 
     @staticmethod
-    def _output(loss_classifier, loss_actor, label, weight, replay_logits, example_logits) -> TensorDict:
+    def _metadata(label, weight, replay_logits, example_logits) -> dict:
         with torch.no_grad():
-            out = TensorDict(
-                {
-                    "loss_classifier": loss_classifier,
-                    "loss_actor": loss_actor,
-                    "label": label.mean(),
-                    "weight": weight.mean(),
-                    "success_probability": success_probability(replay_logits).mean(),
-                    "example_classifier": torch.sigmoid(example_logits).mean(),
-                },
-                batch_size=[],
-            )
+            return {
+                "label": label.mean(),
+                "weight": weight.mean(),
+                "success_probability": success_probability(replay_logits).mean(),
+                "example_classifier": torch.sigmoid(example_logits).mean(),
+            }
+
+    @classmethod
+    def _output(cls, loss_classifier, loss_actor, label, weight, replay_logits, example_logits) -> TensorDict:
+        out = TensorDict(cls._metadata(label, weight, replay_logits, example_logits), batch_size=[])
         # the loss entries keep their graph
         out.set("loss_classifier", loss_classifier)
         out.set("loss_actor", loss_actor)

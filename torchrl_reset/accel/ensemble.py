@@ -248,7 +248,8 @@ class FastEnsembleValueOperator(EnsembleValueOperator):
         Args:
             observation (Tensor): ``[N, observation_dim]``.
             action (Tensor): ``[N, action_dim]``.
-            policy_action (Tensor): ``[N - start, action_dim]``, actions for the last rows.
+            policy_action (Tensor or None): ``[N - start, action_dim]``, actions for the last rows; None:
+                no policy pairs (the second result is None).
             start (int): the first row the policy actions belong to.
             params (TensorDictBase, optional): as in :meth:`logits`.
             slots (Tensor, optional): ``[start]`` integer slots of the first ``start`` rows in a
@@ -261,11 +262,14 @@ class FastEnsembleValueOperator(EnsembleValueOperator):
             ``[N, K]`` and ``[N - start, K]`` logits.
         """
         obs, act = self._check_inputs(observation, action)
-        policy_obs, policy_act = self._check_inputs(observation[start:], policy_action)
+        with_policy = policy_action is not None
+        if with_policy:
+            policy_obs, policy_act = self._check_inputs(observation[start:], policy_action)
         weights, biases, action_weight = self.layer_tensors(params)
         trunk = self._trunk(obs, weights, biases)
-        held = [w.detach() for w in weights], [b.detach() for b in biases], action_weight.detach()
-        policy = self._head(trunk[:, start:].detach(), policy_act, *held)
+        if with_policy:
+            held = [w.detach() for w in weights], [b.detach() for b in biases], action_weight.detach()
+            policy = self._head(trunk[:, start:].detach(), policy_act, *held)
         # after the policy's head: this one may add into the trunk in place
         out = self._head(trunk, act, weights, biases, action_weight, overwrite=True)
         if self.has_prior:
@@ -283,8 +287,8 @@ class FastEnsembleValueOperator(EnsembleValueOperator):
                 else:
                     prior_trunk = self._trunk(obs, p_weights, p_biases)
             rest = prior_trunk if use_cache else prior_trunk[:, start:]
-            # the policy's prior first: the replay rows' prior then reuses the trunk's memory
-            policy = policy + self.prior_scale * self._head(rest, policy_act, *p_layers)
+            if with_policy:  # the policy's prior first: the replay rows' prior then reuses the trunk's memory
+                policy = policy + self.prior_scale * self._head(rest, policy_act, *p_layers)
             with torch.no_grad():
                 if use_cache:
                     prior = torch.cat([
@@ -294,4 +298,4 @@ class FastEnsembleValueOperator(EnsembleValueOperator):
                 else:
                     prior = self._head(prior_trunk, act, *p_layers, overwrite=True)
             out = out + self.prior_scale * prior
-        return out.transpose(0, 1), policy.transpose(0, 1)
+        return out.transpose(0, 1), policy.transpose(0, 1) if with_policy else None

@@ -48,14 +48,13 @@ class FastRCELoss(RCELoss):
         label = label.amin(-1).clamp(max=0.5)
         return label, label_weight(label, gamma)
 
-    def forward(self, tensordict: TensorDictBase):
-        if not self._fast():
-            return super().forward(tensordict)
+    def _fast_terms(self, tensordict: TensorDictBase, with_actor: bool):
+        """The classifier loss (and, with ``with_actor``, the actor loss on the same pass) with its label,
+        weight and logits."""
         keys = self.tensor_keys
         replay, states, action, examples = self._read(tensordict)
         batch = replay.shape[0]
         slots = replay.get(_as_tuple(keys.example_state) + _as_tuple(keys.example_index), None)
-        gamma = self.gamma
         net = self.classifier_network
 
         with torch.no_grad():
@@ -72,18 +71,29 @@ class FastRCELoss(RCELoss):
         observation = torch.cat([acting_obs[num_targets:], net.observation_from(states)], 0)
         classifier_action = torch.cat([acting_actions[num_targets:], action.to(acting_actions.dtype)], 0)
         logits, actor_logits = net.paired_logits(
-            observation, classifier_action, self._act(states), batch, self.classifier_network_params, slots=slots
+            observation, classifier_action, self._act(states) if with_actor else None, batch,
+            self.classifier_network_params, slots=slots,
         )
         example_logits, replay_logits = logits[:batch], logits[batch:]
-        loss_examples = (1.0 - gamma) * F.binary_cross_entropy_with_logits(
-            example_logits, torch.full_like(example_logits, 0.5), reduction="none"
-        ).mean(0)
-        loss_replay = F.binary_cross_entropy_with_logits(
-            replay_logits,
-            label.unsqueeze(-1).expand_as(replay_logits),
-            weight=weight.unsqueeze(-1),
-            reduction="none",
-        ).mean(0)
-        loss_classifier = (loss_examples + loss_replay).sum()
-        loss_actor = -torch.sigmoid(actor_logits).amin(-1).mean()
-        return self._output(loss_classifier, loss_actor, label, weight, replay_logits, example_logits)
+        loss_classifier = self._classifier_loss(example_logits, replay_logits, label, weight)
+        loss_actor = None if actor_logits is None else -torch.sigmoid(actor_logits).amin(-1).mean()
+        return loss_classifier, loss_actor, label, weight, replay_logits, example_logits
+
+    def loss_classifier(self, tensordict: TensorDictBase):
+        if not self._fast():
+            return super().loss_classifier(tensordict)
+        loss, _, label, weight, replay_logits, example_logits = self._fast_terms(tensordict, with_actor=False)
+        return loss, self._metadata(label, weight, replay_logits, example_logits)
+
+    def loss_actor(self, tensordict: TensorDictBase):
+        if not self._fast():
+            return super().loss_actor(tensordict)
+        states = self._require(self._replay(tensordict), None, "s_t")
+        net = self.classifier_network
+        logits = net.logits(net.observation_from(states), self._act(states), self.classifier_network_params.detach())
+        return -torch.sigmoid(logits).amin(-1).mean(), {}
+
+    def forward(self, tensordict: TensorDictBase):
+        if not self._fast():
+            return super().forward(tensordict)
+        return self._output(*self._fast_terms(tensordict, with_actor=True))
