@@ -129,6 +129,8 @@ def make_update(kind: str, *, members: int | None = None, batch: int | None = No
         agent = train_utils.make_reset_agent(cfg, OBS, action_spec())
         names = ("loss_actor", "loss_classifier") if kind == "ours" else ("loss_actor", "loss_value")
     agent.loss.to(device)  # as the recipe does
+    agent.actor.to(device)  # the loss moves its own copies of the networks' buffers, not theirs (tanh bounds, priors)
+    agent.model.to(device)
     agent_name = "forward" if kind == "forward" else "reset"
     use_compile = agent_name in set(cfg.speed.compile) if compiled is None else compiled
     loss = torch.compile(agent.loss) if use_compile else agent.loss

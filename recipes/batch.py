@@ -229,10 +229,13 @@ class BatchedUpdates:
                 losses = update.update([requests[s] for s in runs], runs)
             except FloatingPointError as err:
                 raise NonFiniteLoss(f"{phase} agent, {err}") from err
+            if torch.cuda.is_available() and torch.cuda.is_initialized():
+                torch.cuda.synchronize()  # the backward pass and the optimizer step are queued, not done
         self.seconds += time.perf_counter() - started
+        values = {n: v.tolist() for n, v in losses.items()}  # one device-to-host copy per loss, not one per run
         for j, s in enumerate(runs):
             learner = self.runs[s].learner
-            learner.record_losses(phase, {n: float(v[j]) for n, v in losses.items()})
+            learner.record_losses(phase, {n: v[j] for n, v in values.items()})
 
 
 def train_batch(cfg: DictConfig, runs: list) -> list[dict]:
@@ -304,7 +307,7 @@ class RowExploration:
         prev = prev + ou.x0
         noise = (prev + ou.theta * (ou.mu - prev) * ou.dt
                  + ou.current_sigma(expand_as_right(steps, prev)) * np.sqrt(ou.dt) * torch.stack(draws))
-        eps = torch.stack([self.noises[s].eps for s in rows]).reshape(-1, *([1] * (noise.ndim - 1)))
+        eps = torch.stack([self.noises[s].eps for s in rows]).to(noise.device).reshape(-1, *([1] * (noise.ndim - 1)))
         moved = action[index] + eps * noise
         if low is not None:
             moved = torch.clamp(moved, low.expand_as(moved), high.expand_as(moved))

@@ -64,6 +64,7 @@ def probe_classifier(algo: str, model, reset_actor, examples, forward_rb, reset_
     reset Q (its trigger score) and the ``*_c`` columns are left empty.
     """
     out = {"examples": len(examples)}
+    device = next(model.parameters()).device  # the buffers are on the CPU, the networks on cfg.device
 
     def scores(data: TensorDict) -> tuple[torch.Tensor, torch.Tensor]:
         values = model(data.select(*model.in_keys).clone(False)).get(model.out_keys[0])
@@ -75,15 +76,15 @@ def probe_classifier(algo: str, model, reset_actor, examples, forward_rb, reset_
         return reduce_members(p, "mean" if algo == "ours" else "min")
 
     if len(examples):
-        sample = examples.sample(reset_rb.batch_size if len(reset_rb) else 256)
+        sample = examples.sample(reset_rb.batch_size if len(reset_rb) else 256).to(device)
         sample = reset_actor(sample.select(*reset_actor.in_keys))
         c, p = scores(sample)
         out.update(example_c=float(c.mean()), example_p=float(reduce(p).mean()))
     if len(reset_rb):
-        c, p = scores(reset_rb.sample())
+        c, p = scores(reset_rb.sample().to(device))
         out.update(reset_replay_c=float(c.mean()), reset_replay_p=float(reduce(p).mean()))
     if len(forward_rb):
-        _, p = scores(forward_rb.sample())
+        _, p = scores(forward_rb.sample().to(device))
         trigger = reduce(p)
         out.update(forward_p=float(trigger.mean()), forward_p_min_member=float(p.amin(-1).mean()),
                    forward_p_member_std=float(p.std(-1).mean()) if p.shape[-1] > 1 else 0.0,
@@ -102,7 +103,7 @@ class ResetDistances:
         states = self.examples.states().get(self.key).reshape(len(self.examples), -1).float()
         if self._start is None:
             self._start = states[0].clone()
-        last = event["state"].get(self.key).reshape(-1).float()
+        last = event["state"].get(self.key).reshape(-1).float().cpu()  # the examples are on the CPU
         return {"frames": event["frame"], "outcome": event["outcome"], "steps": event["steps"],
                 "distance_to_start": float((last - self._start).norm()),
                 "distance_to_examples": float((states - last).norm(dim=-1).min())}

@@ -134,13 +134,13 @@ class Learner:
         at this step (past its heat-up, and in time on a robot), else None."""
         updating = self.collector.counters[f"{phase}_steps"] > self.heat_up
         if phase == "forward":
-            self.forward_rb.extend(batch.select(*self.forward_keys, strict=False))
+            self.forward_rb.extend(batch.select(*self.forward_keys, strict=False).cpu())  # the buffers live on the CPU
         else:
-            self.reset_rb.extend(batch.select(*self.reset_keys, strict=False))
+            self.reset_rb.extend(batch.select(*self.reset_keys, strict=False).cpu())  # (the n-step transform too)
         return self._sample(phase) if updating and self._fits(phase) else None
 
     def _sample(self, phase: str):
-        return self.forward_rb.sample() if phase == "forward" else self._reset_sample()
+        return self.forward_rb.sample().to(self.cfg.device) if phase == "forward" else self._reset_sample()
 
     def loss_names(self, phase: str) -> tuple[str, str]:
         """The loss entries that agent ``phase`` sums and minimises (the actor's first)."""

@@ -166,6 +166,10 @@ def build_run(cfg: DictConfig, matmul_precision: str) -> Run:
     reset = make_reset_agent(cfg, obs_dim, action_spec)  # pi_r and the classifiers C_i (LNT: the Q_i)
     for agent in (forward, reset):
         agent.loss.to(cfg.device)
+        # the loss moves the networks' parameters in place but only its own copies of their buffers
+        # (the tanh module's action bounds, the ensemble's priors): the modules that act keep theirs
+        agent.actor.to(cfg.device)
+        agent.model.to(cfg.device)
     env, trigger = make_task_env(cfg, reset)  # the trigger watches every forward action
     eval_env, eval_trigger = make_task_env(cfg, reset, for_eval=True)
     collector = make_collector(cfg, env, forward, reset)  # S* lives in the collector

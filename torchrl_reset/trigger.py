@@ -205,6 +205,8 @@ class ResetTriggerTransform(Transform):
         (Algorithm 1 scores that action before it checks the horizon)."""
         score = self.evaluate(tensordict)
         rows = self._rows
+        if rows is not None:
+            rows = rows.to(score.device)  # a mask made on the CPU (the batched collector's numpy masks)
         if rows is not None and rows.shape != score.shape:
             raise ValueError(f"set_enabled was given a mask of shape {tuple(rows.shape)}; the env's batch is "
                              f"{tuple(score.shape)}.")
