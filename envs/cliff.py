@@ -13,33 +13,30 @@ _WALL_RGBA = (0.45, 0.4, 0.35, 1.0)
 _DITCH_RGBA = (0.35, 0.25, 0.2, 1.0)
 
 
-def add_cliff_terrain(spec: mujoco.MjSpec, *, edge: float, far_wall: float, back_wall: float = -2.0, depth: float = 2.0) -> None:
-    """Replace the model's infinite floor with the cliff terrain.
+def add_cliff_terrain(spec: mujoco.MjSpec, *, edge: float, far_wall: float, back_wall: float = -2.0) -> None:
+    """Replace the model's infinite floor with the cliff terrain of the authors' release.
 
-    A slab whose top is at z = 0 spans ``back_wall <= x <= edge``; a wall stands at ``x = back_wall``;
-    past ``edge`` the floor drops ``depth`` metres to the ditch floor, which ends at a tall wall at
-    ``x = far_wall``. The geoms are named ``floor``, ``ditch_floor``, ``back_wall`` and ``far_wall``.
+    Five boxes, 0.4 m wide in y (contype 1, conaffinity 1, the model's default contact parameters):
+    the floor, top at z = 0.05 and 0.2 m thick, over ``back_wall <= x <= edge``; a wall 0.2 m thick
+    centred on ``x = back_wall`` from z = 0 to 2; a 0.2 m block centred on ``x = edge`` from z = -2 to
+    0 (the cliff's face); the ditch floor, top at z = -1.9, over ``edge <= x <= far_wall``; a wall
+    centred on ``x = far_wall`` from z = -2 to 2. The geoms are named ``floor``, ``back_wall``,
+    ``cliff_face``, ``ditch_floor`` and ``far_wall``.
     """
     spec.delete(spec.geom("floor"))
-    half_y = 2.0
     world = spec.worldbody
 
     def box(name: str, x0: float, x1: float, z0: float, z1: float, rgba) -> None:
         world.add_geom(
-            name=name,
-            type=mujoco.mjtGeom.mjGEOM_BOX,
-            pos=[(x0 + x1) / 2, 0.0, (z0 + z1) / 2],
-            size=[(x1 - x0) / 2, half_y, (z1 - z0) / 2],
-            rgba=list(rgba),
-            contype=1,
-            conaffinity=1,
-            condim=3,
+            name=name, type=mujoco.mjtGeom.mjGEOM_BOX, pos=[(x0 + x1) / 2, 0.0, (z0 + z1) / 2],
+            size=[(x1 - x0) / 2, 0.2, (z1 - z0) / 2], rgba=list(rgba), contype=1, conaffinity=1, condim=3,
         )
 
-    box("floor", back_wall, edge, -depth, 0.0, _TERRAIN_RGBA)
-    box("ditch_floor", edge, far_wall, -depth - 0.5, -depth, _DITCH_RGBA)
-    box("back_wall", back_wall - 0.2, back_wall, -depth, 1.5, _WALL_RGBA)
-    box("far_wall", far_wall, far_wall + 0.2, -depth - 0.5, 1.5, _WALL_RGBA)
+    box("floor", back_wall, edge, -0.15, 0.05, _TERRAIN_RGBA)
+    box("back_wall", back_wall - 0.1, back_wall + 0.1, 0.0, 2.0, _WALL_RGBA)
+    box("cliff_face", edge - 0.1, edge + 0.1, -2.0, 0.0, _WALL_RGBA)
+    box("ditch_floor", edge, far_wall, -2.1, -1.9, _DITCH_RGBA)
+    box("far_wall", far_wall - 0.1, far_wall + 0.1, -2.0, 2.0, _WALL_RGBA)
 
 
 class _CliffEnv(MujocoResetEnv):
@@ -59,19 +56,18 @@ class _CliffEnv(MujocoResetEnv):
         add_cliff_terrain(spec, edge=self.edge, far_wall=self.far_wall)
         return spec
 
-    def _before_step(self) -> float:
-        return float(self.data.qpos[0])
-
-    def _velocity(self, x_before: float) -> float:
-        return (float(self.data.qpos[0]) - x_before) / self.dt
+    def _velocity(self) -> float:
+        """The forward velocity after the step, ``qvel[0]`` (the release reads it from the observation)."""
+        return float(self.data.qvel[0])
 
 
 class CliffCheetahEnv(_CliffEnv):
     """cliff-cheetah: the half-cheetah runs forward on a floor that ends in a ditch at x = 14.
 
-    Model: gymnasium's ``half_cheetah.xml`` (timestep 0.01 s, frame skip 5, so 0.05 s per step) with
-    its infinite floor replaced: floor top at z = 0 for -2 <= x <= 14, a wall at x = -2, a 2 m drop
-    into a ditch whose floor (z = -2) ends at a wall at x = 16.
+    Model: gymnasium's ``half_cheetah.xml`` (timestep 0.01 s, frame skip 5, so 0.05 s per step; the
+    same bodies, masses, joints and motors as the release's model) with its infinite floor replaced by
+    the release's terrain (:func:`add_cliff_terrain`): floor top at z = 0.05 for -2 <= x <= 14, a wall
+    at x = -2, a drop at x = 14 into a ditch whose floor (z = -1.9) ends at a wall at x = 16.
 
     ==================  ==========================================================================
     observation (18)    0 x (m, rootx), 1 z (m, rootz: torso height minus its start height 0.7),
@@ -79,8 +75,8 @@ class CliffCheetahEnv(_CliffEnv):
                         ffoot (rad); 9-17 the same nine velocities (m/s, rad/s)
     action (6)          torques in [-1, 1] on bthigh, bshin, bfoot, fthigh, fshin, ffoot
                         (gears 120, 90, 60, 120, 60, 30)
-    forward reward      ``Cond(v; 9, 11, 7)``, v = x displacement over the step / 0.05 s
-                        (info ``reward_velocity`` holds v)
+    forward reward      ``Cond(v; 9, 11, 7)``, v = the x velocity after the step (observation 9;
+                        info ``reward_velocity`` holds v)
     reset_success       ``|x| < 0.1`` and ``|pitch| < 0.1``
     reset_reward        ``clip(0.8 [|x| < 0.5] + 0.1 (1 - 0.2 |x|)
                         + 0.1 Cond(pitch; -0.05, 0.05, 0.1), 0, 1)``
@@ -125,7 +121,7 @@ class CliffCheetahEnv(_CliffEnv):
         return np.concatenate([self.data.qpos, self.data.qvel])
 
     def _forward_reward(self, action, before):
-        velocity = self._velocity(before)
+        velocity = self._velocity()
         return tolerance(velocity, 9.0, 11.0, 7.0), {"velocity": velocity}
 
     def _status(self, action):
@@ -139,16 +135,18 @@ class CliffWalkerEnv(_CliffEnv):
     """cliff-walker: the 2-D walker walks forward on a floor that ends in a ditch at x = 6.
 
     Model: gymnasium's ``walker2d_v5.xml`` (RK4, timestep 0.002 s, frame skip 5, so 0.01 s per step)
-    with its infinite floor replaced: floor top at z = 0 for -2 <= x <= 6, a wall at x = -2, a 2 m
-    drop into a ditch whose floor (z = -2) ends at a wall at x = 8.
+    with the release's right-foot friction (0.9; gymnasium's v5 sets both feet to 1.9, the release only
+    the left) and its infinite floor replaced by the release's terrain (:func:`add_cliff_terrain`):
+    floor top at z = 0.05 for -2 <= x <= 6, a wall at x = -2, a drop at x = 6 into a ditch whose floor
+    (z = -1.9) ends at a wall at x = 8. Standing at rest its feet sink about 1 cm into the floor.
 
     ==================  ==========================================================================
     observation (18)    0 x (m), 1 h (torso height, m), 2 pitch (rad), 3-5 right thigh, leg, foot,
                         6-8 left thigh, leg, foot angles (rad); 9-17 the nine velocities, each
                         clipped to [-10, 10]
     action (6)          torques in [-1, 1] (gear 100) on right thigh, leg, foot, left thigh, leg, foot
-    forward reward      ``run * stand * upright``: ``run = clip(v / 2, 0, 1)`` (v = x displacement
-                        over the step / 0.01 s), ``stand = clip(0.25 h + 0.25 [h > 1.2]
+    forward reward      ``run * stand * upright``: ``run = clip(v / 2, 0, 1)`` (v = the x velocity
+                        after the step clipped to [-10, 10], observation 9), ``stand = clip(0.25 h + 0.25 [h > 1.2]
                         + 0.5 (1 - [h < 0.7]), 0, 1)``, ``upright = Cond(pitch; -0.75, 0.75, 0.5)``
     reset_success       ``|x| < 0.5``, ``|h - 1.3| < 0.3``, ``|pitch| < 1.0``
     reset_reward        ``clip(0.8 [|x| < 0.5] + 0.2 (1 - 0.2 |x|), 0, 1) * stand * upright``
@@ -173,6 +171,13 @@ class CliffWalkerEnv(_CliffEnv):
     edge = 6.0
     far_wall = 8.0
 
+    def _build_spec(self) -> mujoco.MjSpec:
+        spec = super()._build_spec()
+        friction = spec.geom("foot_geom").friction
+        friction[0] = 0.9  # the release's right foot (its left foot keeps 1.9)
+        spec.geom("foot_geom").friction = friction
+        return spec
+
     def _reset_state(self) -> None:
         rng = self.np_random
         self.data.qpos[:] = self.model.qpos0 + rng.uniform(-0.005, 0.005, size=self.model.nq)
@@ -187,7 +192,7 @@ class CliffWalkerEnv(_CliffEnv):
         return stand, tolerance(pitch, -0.75, 0.75, 0.5)
 
     def _forward_reward(self, action, before):
-        velocity = self._velocity(before)
+        velocity = float(np.clip(self._velocity(), -10.0, 10.0))  # as the observation holds it
         run = float(np.clip(velocity / 2.0, 0.0, 1.0))
         stand, upright = self._stand_upright()
         return run * stand * upright, {"velocity": velocity, "run": run, "stand": stand, "upright": upright}

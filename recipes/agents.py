@@ -15,7 +15,7 @@ from torchrl.objectives import SoftUpdate
 
 from torchrl_reset import ResetTriggerTransform, accel, bound_td0_targets
 
-__all__ = ["speed_components", "make_actor", "with_exploration", "make_adam", "Agent", "make_forward_agent", "make_reset_agent", "make_trigger", "lnt_batch", "reset_tau"]
+__all__ = ["speed_components", "make_actor", "with_exploration", "exploration_settings", "make_adam", "Agent", "make_forward_agent", "make_reset_agent", "make_trigger", "lnt_batch", "reset_tau"]
 
 
 def speed_components(cfg: DictConfig) -> accel.Components:
@@ -44,12 +44,20 @@ def make_actor(obs_dim: int, action_spec, hidden_sizes, parts: accel.Components 
 def with_exploration(actor, action_spec, cfg: DictConfig) -> TensorDictSequential:
     """The policy plus Ornstein-Uhlenbeck noise; ``exploration.clip: false`` (the release) leaves the noisy
     action outside the action box (the env clamps it at the motors' range; buffers and trigger see it as drawn)."""
+    settings = exploration_settings(cfg)
     noise = OrnsteinUhlenbeckProcessModule(
         spec=action_spec, eps_init=1.0, eps_end=1.0, annealing_num_steps=1,
-        theta=cfg.exploration.theta, sigma=cfg.exploration.sigma, dt=cfg.exploration.dt,
-        safe=bool(OmegaConf.select(cfg, "exploration.clip", default=True)),
+        theta=settings["theta"], sigma=settings["sigma"], dt=settings["dt"],
+        safe=bool(settings.get("clip", True)),
     )
     return TensorDictSequential(actor, noise)
+
+
+def exploration_settings(cfg: DictConfig) -> dict:
+    """The noise's settings: ``exploration.*``, with the task's own ``task.exploration.*`` entries over them
+    (cliff-walker's release config uses sigma 0.01 and dt 0.01)."""
+    task = OmegaConf.select(cfg, "task.exploration", default=None) or {}
+    return {**OmegaConf.to_container(cfg.exploration, resolve=True), **OmegaConf.to_container(task, resolve=True)}
 
 
 def make_adam(cfg: DictConfig, groups: list[dict]) -> torch.optim.Optimizer:

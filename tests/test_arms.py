@@ -105,7 +105,9 @@ def test_rows_without_their_arm_or_of_an_unknown_arm_are_refused():
         rb.extend(episode(2, 0.0, 3, traj=1))
 
 
-COMMON = ["task=peg_insertion_insert", "algo=ours", "threads=1"]
+# what arms= supports: the noise restarted at every episode, the forward buffer sampled uniformly over steps
+ARMS_SETTINGS = ["exploration.restart=episode", "forward.sampling=transition"]
+COMMON = ["task=peg_insertion_insert", "algo=ours", "threads=1", *ARMS_SETTINGS]
 
 
 def without_speed(table):
@@ -124,7 +126,7 @@ def test_one_arm_is_the_run_on_one_env(tmp_path):
 
 @pytest.mark.parametrize("algo", ["ours", "lnt"])
 def test_arms_train_one_run_and_resume_exactly(tmp_path, algo):
-    common = ["task=peg_insertion_insert", f"algo={algo}", "threads=1", "arms=3"]
+    common = ["task=peg_insertion_insert", f"algo={algo}", "threads=1", "arms=3", *ARMS_SETTINGS]
     whole = train.train(config(tmp_path / "whole", *common, "total_steps=400"))
     train.train(config(tmp_path / "split", *common, "total_steps=200"))
     resumed = train.train(config(tmp_path / "split", *common, "total_steps=400", "resume=true"))
@@ -152,6 +154,15 @@ def test_arms_train_one_run_and_resume_exactly(tmp_path, algo):
 def test_bad_arm_configurations_fail_before_training(tmp_path, overrides, message):
     with pytest.raises(ConfigError, match=message):
         train.train(config(tmp_path, *COMMON, *overrides))
+
+
+@pytest.mark.parametrize("overrides, message", [
+    (["arms=2", "forward.sampling=transition"], "add exploration.restart=episode"),
+    (["arms=2", "exploration.restart=episode"], "add forward.sampling=transition"),
+])
+def test_arms_refuse_the_release_settings_they_cannot_follow_yet(tmp_path, overrides, message):
+    with pytest.raises(ConfigError, match=message):
+        train.train(config(tmp_path, "task=peg_insertion_insert", "algo=ours", "threads=1", *overrides))
 
 
 def test_a_checkpoint_resumes_only_with_its_number_of_arms(tmp_path):

@@ -27,13 +27,16 @@ sys.path.insert(0, str(RECIPES))
 
 import batch  # noqa: E402
 import train  # noqa: E402
-from config_checks import ConfigError  # noqa: E402
+from config_checks import ConfigError, validate  # noqa: E402
 
 TINY = [
     "hidden_sizes=[16,16]", "heat_up=40", "task.forward_horizon=20", "forward.batch_size=16", "reset.batch_size=16",
     "forward.buffer_size=2000", "reset.buffer_size=2000", "eval_every=100", "log_every=50", "checkpoint_every=100",
     "progress_bar=false", "speed.compile=[]", "speed.fused_adam=false", "task=peg_insertion_remove",
 ]
+# what a batch supports: the noise restarted at every episode, one joint step per agent
+BATCH_SETTINGS = ["exploration.restart=episode", "update_order=joint"]
+TINY = [*TINY, *BATCH_SETTINGS]
 COUNTERS = ["frames", "forward_steps", "reset_steps", "forward_episodes", "reset_episodes", "manual_resets",
             "triggered_resets", "requested_resets", "successful_resets", "forward_share", "reset_success_rate"]
 LOSSES = ["loss_forward_actor", "loss_forward_critic", "loss_reset_actor", "loss_reset_critic", "eval_return"]
@@ -179,6 +182,17 @@ def test_bad_batches_fail_before_training(tmp_path, overrides, message):
         seeds = batch.batch_seeds(cfg)
         batch.run_configs(cfg, seeds)
     assert not any(tmp_path.rglob("*.csv"))
+
+
+@pytest.mark.parametrize("overrides,message", [
+    (["update_order=joint"], "add exploration.restart=episode"),
+    (["exploration.restart=episode"], "add update_order=joint"),
+])
+def test_batches_refuse_the_release_settings_they_cannot_follow_yet(overrides, message):
+    with initialize_config_dir(config_dir=str(RECIPES / "conf"), version_base="1.3"):
+        cfg = compose(config_name="config", overrides=[*(t for t in TINY if t not in BATCH_SETTINGS), "seeds=2", *overrides])
+    with pytest.raises(ConfigError, match=message):
+        validate(cfg)
 
 
 @pytest.mark.parametrize("overrides,message", [

@@ -255,3 +255,55 @@ def test_batched_envs_and_missing_success_flags_are_rejected_clearly():
     collector = DualCollector(ChainEnv(), RIGHT, LEFT, max_forward_steps=1, min_reset_steps=1, reset_success_key="at_home")
     with pytest.raises(KeyError, match="at_home"):
         collect(collector)
+
+
+def counting_policy(sign: float):
+    """Steps right (+1) or left (-1) and numbers its own steps in a private entry, as torchrl's
+    Ornstein-Uhlenbeck module keeps its noise state (restarted where ``is_init`` holds); the step's
+    number is copied to the public ``index`` entry so that the yielded batch shows it."""
+    def policy(td):
+        count = td.get("_count", None)
+        if count is None or bool(td.get("is_init").any()):
+            count = torch.zeros(1)
+        td.set("_count", count + 1)
+        td.set("index", count.clone())
+        td.set("action", torch.full((1,), sign))
+        return td
+    return policy
+
+
+@pytest.mark.parametrize("restart", [True, False])
+def test_exploration_state_restarts_per_episode_or_goes_on_per_policy(restart):
+    # two rounds of H_f = 3 steps right, then 3 steps left back to cell 0 (a successful reset each time)
+    collector = DualCollector(ChainEnv(num_states=10), counting_policy(1.0), counting_policy(-1.0), max_forward_steps=3,
+                              max_reset_steps=3, min_reset_steps=1, total_frames=12, restart_exploration=restart)
+    steps = torch.cat([b for b in collector])
+    forward = steps[steps["collector", "phase"] == 0]["index"].flatten().tolist()
+    reset = steps[steps["collector", "phase"] == 1]["index"].flatten().tolist()
+    assert collector.counters["successful_resets"] == 2
+    if restart:  # every episode starts its policy's process anew
+        assert forward == [0, 1, 2, 0, 1, 2] and reset == [0, 1, 2, 0, 1, 2]
+    else:  # each policy's process goes on from its last episode, the other policy's steps in between
+        assert forward == [0, 1, 2, 3, 4, 5] and reset == [0, 1, 2, 3, 4, 5]
+
+
+def test_exploration_state_goes_on_across_manual_resets_and_a_saved_state():
+    def make():
+        return DualCollector(ChainEnv(num_states=10), counting_policy(1.0), counting_policy(-1.0), max_forward_steps=3,
+                             max_reset_steps=2, min_reset_steps=1, total_frames=15, restart_exploration=False)
+
+    whole = torch.cat(collect(make()))
+    # every reset fails (2 steps from cell 3): a manual reset after each, and the forward process goes on
+    assert whole["index"][whole["collector", "phase"] == 0].flatten().tolist() == [0, 1, 2, 3, 4, 5, 6, 7, 8]
+    assert whole["index"][whole["collector", "phase"] == 1].flatten().tolist() == [0, 1, 2, 3, 4, 5]
+    first = make()
+    first.total_frames = 7
+    head = collect(first)
+    buffer = io.BytesIO()
+    torch.save(first.state_dict(), buffer)
+    buffer.seek(0)
+    second = make()
+    second.load_state_dict(torch.load(buffer, weights_only=False))
+    tail = collect(second)
+    resumed = torch.cat(head + tail)
+    assert resumed["index"].flatten().tolist() == whole["index"].flatten().tolist()

@@ -156,3 +156,28 @@ def test_kept_prior_part_of_slotted_states_gives_the_same_logits_and_follows_cha
     with pytest.raises(ValueError, match="one per row"):
         ens.paired_logits(torch.cat([pool[:2], replay_obs]), torch.rand(6, 2, dtype=torch.float64), policy_act, 2,
                           slots=torch.tensor([0]))
+
+
+@pytest.mark.parametrize("draw", ["xavier", "fan_in"])
+def test_prior_biases_follow_the_chosen_draw(draw):
+    """The release's Xavier initializer reads a bias of n units as fan_in = fan_out = n: U(+-sqrt(6 / 2n)),
+    so sqrt(3 / 1) = 1.732 on the one-unit output and sqrt(3 / 300) = 0.1 on 300 units; the fan_in draw is
+    U(+-1 / sqrt(fan_in)). A uniform draw on [-b, b] has standard deviation b / sqrt(3)."""
+    members, obs, act = 4000, 3, 2
+    ens = EnsembleValueOperator(obs, act, num_members=members, hidden_sizes=(8, 300), prior_bias_draw=draw)
+    if draw == "xavier":
+        bounds = [math.sqrt(3 / 8), math.sqrt(3 / 300), math.sqrt(3.0)]
+    else:  # fan_in of layer 1 counts the action joined to it
+        bounds = [1 / math.sqrt(obs), 1 / math.sqrt(8 + act), 1 / math.sqrt(300)]
+    for i, bound in enumerate(bounds):
+        bias = getattr(ens, f"prior_bias_{i}")
+        assert bias.abs().max() <= bound and bias.abs().max() > 0.99 * bound
+        assert bias.std().item() == pytest.approx(bound / math.sqrt(3), rel=0.05)
+    assert all((getattr(ens, f"bias_{i}") == 0).all() for i in range(3))  # the trained biases stay zero
+    # beta = 3 turns the output bias into a constant logit offset of up to 3 * bound per member
+    assert (3 * ens.prior_bias_2).abs().max() <= 3 * bounds[2]
+
+
+def test_an_unknown_prior_bias_draw_is_refused():
+    with pytest.raises(ValueError, match="prior_bias_draw must be one of"):
+        EnsembleValueOperator(3, 2, prior_bias_draw="uniform")

@@ -310,3 +310,32 @@ def test_a_batch_marked_one_step_gets_the_one_step_label_and_needs_no_nstep_entr
     torch.testing.assert_close(label, torch.tensor(expected), rtol=1e-6, atol=0)
     torch.testing.assert_close(weight, 1 + gamma * torch.exp(-2 * torch.tensor([0.5, 2.0])), rtol=1e-6, atol=0)
     assert torch.isfinite(loss(data)["loss_classifier"])
+
+
+@pytest.mark.parametrize("fast", [False, True])
+def test_loss_classifier_and_loss_actor_are_forwards_two_losses(fast):
+    """The separate losses (for the release's update order) are the joint forward's entries on the same
+    parameters, with the same gradients, on the reference and the accelerated path."""
+    from torchrl_reset import accel
+
+    torch.manual_seed(0)
+    loss, actor, ens, sample = _random_setup()
+    if fast:
+        fast_ens = accel.FastEnsembleValueOperator(4, 2, num_members=3, hidden_sizes=(16, 16))
+        fast_ens.load_state_dict(ens.state_dict())
+        loss = accel.FastRCELoss(actor, fast_ens, gamma=0.99, n_steps=4)
+    batch = sample()
+    joint = loss(batch.clone())
+    classifier, meta = loss.loss_classifier(batch.clone())
+    actor_loss, _ = loss.loss_actor(batch.clone())
+    torch.testing.assert_close(classifier, joint["loss_classifier"])
+    torch.testing.assert_close(actor_loss, joint["loss_actor"])
+    for key in ("label", "weight", "success_probability", "example_classifier"):
+        torch.testing.assert_close(meta[key], joint[key])
+    params = list(loss.parameters())
+    both = torch.autograd.grad(joint["loss_classifier"] + joint["loss_actor"], params, allow_unused=True)
+    apart = torch.autograd.grad(classifier + actor_loss, params, allow_unused=True)
+    for a, b in zip(both, apart):
+        assert (a is None) == (b is None)
+        if a is not None:
+            torch.testing.assert_close(a, b)

@@ -465,3 +465,48 @@ def test_the_summary_names_the_processor_kind_a_run_reproduces_on(tmp_path):
     assert train_utils.processor_name(info) == "Intel(R) Xeon(R) Processor, AVX2"
     info.write_text("model name\t: Some CPU\nflags\t\t: fpu sse2\n")
     assert train_utils.processor_name(info) == "Some CPU"
+
+
+@pytest.mark.parametrize("release_order", [True, False])
+def test_release_order_steps_the_critic_then_the_actor_with_it_on_rows_drawn_again(tmp_path, release_order):
+    """update_order=release: a critic step, then an actor step whose loss uses the updated classifiers, on
+    B rows drawn with replacement from the batch. Worked out here with plain SGD steps, by hand."""
+    from learner import update_agent
+
+    cfg = config(tmp_path, "algo=ours")
+    spec = train_utils.make_env("peg_insertion_insert").action_spec
+    torch.manual_seed(0)
+    agent = train_utils.make_reset_agent(cfg, 14, spec)
+    actor_params, critic_params = list(agent.actor.parameters()), list(agent.model.parameters())
+    agent.optimizer = torch.optim.SGD([{"params": actor_params, "lr": 0.3}, {"params": critic_params, "lr": 0.5}])
+    b = 16
+    state = lambda: TensorDict(observation=torch.randn(b, 14), batch_size=[b])  # noqa: E731
+    sample = TensorDict(observation=torch.randn(b, 14), action=torch.rand(b, 7) * 2 - 1, next=state(),
+                        nstep=state(), example=state(), batch_size=[b])
+    torch.manual_seed(0)
+    reference = train_utils.make_reset_agent(cfg, 14, spec)  # the same networks, to be stepped by hand
+    ref_actor, ref_critic = list(reference.actor.parameters()), list(reference.model.parameters())
+
+    # by hand: theta_c <- theta_c - 0.5 dL_c; then rows drawn with replacement, theta_a <- theta_a - 0.3 dL_a
+    grads = torch.autograd.grad(reference.loss.loss_classifier(sample.clone())[0], ref_critic)
+    with torch.no_grad():
+        for p, g in zip(ref_critic, grads):
+            p -= 0.5 * g
+    torch.manual_seed(7)
+    rows = torch.randint(b, (b,)) if release_order else torch.arange(b)
+    if not release_order:  # the joint step: the actor's loss from the classifiers before their step
+        torch.manual_seed(0)
+        reference = train_utils.make_reset_agent(cfg, 14, spec)
+        ref_actor = list(reference.actor.parameters())
+    grads = torch.autograd.grad(reference.loss.loss_actor(sample[rows].clone())[0], ref_actor)
+    expected_actor = [(p - 0.3 * g).detach() for p, g in zip(ref_actor, grads)]
+
+    target_before = agent.loss.target_classifier_network_params.get("weight_0").clone()
+    torch.manual_seed(7)
+    update_agent(agent, sample.clone(), ("loss_actor", "loss_classifier"), release_order=release_order)
+    for p, e in zip(actor_params, expected_actor):
+        torch.testing.assert_close(p.detach(), e, rtol=1e-5, atol=1e-6)
+    # the soft target update follows both steps: target <- (1 - tau) target + tau network
+    tau = 1.0 - agent.targets.eps
+    torch.testing.assert_close(agent.loss.target_classifier_network_params.get("weight_0"),
+                               (1 - tau) * target_before + tau * agent.model.weight_0.detach())

@@ -202,6 +202,39 @@ def test_started_past_the_edge_the_robot_falls_and_irrecoverable_stays_set(env_c
     assert not info["irrecoverable"] and not env.irrecoverable
 
 
+@pytest.mark.parametrize("env_cls, edge, far", [(CliffCheetahEnv, 14.0, 16.0), (CliffWalkerEnv, 6.0, 8.0)])
+def test_cliff_terrain_is_the_releases(env_cls, edge, far):
+    """docs/release-audit.md: floor top at z = 0.05 over [-2, edge], the ditch's floor top at -1.9 over
+    [edge, far], the cliff face a 0.2 m block on x = edge from z = -2 to 0, walls on x = -2 and x = far."""
+    model = env_cls().model
+
+    def extent(name):
+        g = model.geom(name)
+        return g.pos[0] - g.size[0], g.pos[0] + g.size[0], g.pos[2] - g.size[2], g.pos[2] + g.size[2]
+
+    np.testing.assert_allclose(extent("floor"), (-2.0, edge, -0.15, 0.05), atol=1e-12)
+    np.testing.assert_allclose(extent("ditch_floor"), (edge, far, -2.1, -1.9), atol=1e-12)
+    np.testing.assert_allclose(extent("cliff_face"), (edge - 0.1, edge + 0.1, -2.0, 0.0), atol=1e-12)
+    np.testing.assert_allclose(extent("back_wall"), (-2.1, -1.9, 0.0, 2.0), atol=1e-12)
+    np.testing.assert_allclose(extent("far_wall"), (far - 0.1, far + 0.1, -2.0, 2.0), atol=1e-12)
+
+
+def test_walker_feet_frictions_are_the_releases():
+    model = CliffWalkerEnv().model
+    assert model.geom("foot_geom").friction[0] == pytest.approx(0.9)  # right foot
+    assert model.geom("foot_left_geom").friction[0] == pytest.approx(1.9)
+
+
+@pytest.mark.parametrize("env_cls", [CliffCheetahEnv, CliffWalkerEnv])
+def test_cliff_forward_velocity_is_qvel_after_the_step(env_cls):
+    env = env_cls()
+    env.reset(seed=0)
+    rng = np.random.default_rng(0)
+    for _ in range(20):
+        _, _, _, _, info = env.step(rng.uniform(-1, 1, 6))
+        assert info["reward_velocity"] == float(np.clip(env.data.qvel[0], -10, 10))
+
+
 def test_cliff_rewards_by_hand():
     cheetah = CliffCheetahEnv()
     cheetah.reset(seed=0)
