@@ -56,8 +56,9 @@ def with_exploration(actor, action_spec, cfg: DictConfig) -> TensorDictSequentia
 def exploration_settings(cfg: DictConfig) -> dict:
     """The noise's settings: ``exploration.*``, with the task's own ``task.exploration.*`` entries over them
     (cliff-walker's release config uses sigma 0.01 and dt 0.01)."""
-    task = OmegaConf.select(cfg, "task.exploration", default=None) or {}
-    return {**OmegaConf.to_container(cfg.exploration, resolve=True), **OmegaConf.to_container(task, resolve=True)}
+    task = OmegaConf.select(cfg, "task.exploration", default=None)
+    own = {} if task is None else OmegaConf.to_container(task, resolve=True)
+    return {**OmegaConf.to_container(cfg.exploration, resolve=True), **own}
 
 
 def make_adam(cfg: DictConfig, groups: list[dict]) -> torch.optim.Optimizer:

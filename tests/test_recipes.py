@@ -510,3 +510,15 @@ def test_release_order_steps_the_critic_then_the_actor_with_it_on_rows_drawn_aga
     tau = 1.0 - agent.targets.eps
     torch.testing.assert_close(agent.loss.target_classifier_network_params.get("weight_0"),
                                (1 - tau) * target_before + tau * agent.model.weight_0.detach())
+
+
+def test_cliff_walker_explores_with_the_releases_smaller_noise(tmp_path):
+    """The release's configs: sigma 0.01 and dt 0.01 for cliff-walker's two agents, 0.2 and 0.05 elsewhere."""
+    from agents import exploration_settings, with_exploration
+
+    spec = train_utils.make_env("peg_insertion_insert").action_spec
+    for task, sigma, dt in (("cliff_walker", 0.01, 0.01), ("cliff_cheetah", 0.2, 0.05), ("peg_insertion_insert", 0.2, 0.05)):
+        cfg = config(tmp_path, f"task={task}")
+        assert exploration_settings(cfg) | {"sigma": sigma, "dt": dt, "theta": 0.15} == exploration_settings(cfg)
+        noise = with_exploration(train_utils.make_actor(14, spec, [16, 16]), spec, cfg)[-1].ou
+        assert (noise.sigma, noise.dt, noise.theta) == (sigma, dt, 0.15)

@@ -2,6 +2,10 @@
 
     python results/100000-release/probes/offline_classifier.py --seeds 0 1 2 3 4 --updates 500 \
         --out results/100000-release/probes/offline_classifier.csv
+    python results/100000-release/probes/offline_classifier.py --seeds 0 1 2 3 4 --targets copy  # targets copied
+
+First, untrained agents (``--init-seeds`` per draw): the minimum-over-members label the members would
+train on and the trigger's score, on 2000 rows of the failed reset episodes.
 
 Peg-insertion (insert) at the recipe's paper settings. Data (once, seed 0): the untrained forward and
 reset policies with their exploration noise act through forward episodes (H_f = 100) and reset
@@ -68,16 +72,40 @@ def failed_reset_episodes(min_rows: int):
     return cfg, episodes, start, outcomes, forward
 
 
+def at_initialisation(episodes, seeds, rows=2000):
+    """Untrained agents, each draw and seed: the minimum-over-members label (what every member trains on)
+    and the trigger's score on ``rows`` replay rows of the failed reset episodes."""
+    out = []
+    for draw in ("fan_in", "xavier"):
+        for seed in range(seeds):
+            run_cfg = config([f"seed={seed}", f"algo.prior_bias_draw={draw}"])
+            torch.manual_seed(seed)
+            obs_dim, action_spec = task_dimensions(run_cfg)
+            agent = make_reset_agent(run_cfg, obs_dim, action_spec)
+            _, replay = make_buffers(run_cfg)
+            for episode in episodes:
+                replay.extend(episode.select(*REPLAY_KEYS, strict=False))
+            sample = replay.sample(rows)
+            label, _ = agent.loss.labels(sample)
+            with torch.no_grad():
+                score = success_probability(agent.model.logits(sample["observation"], sample["action"])).mean(-1)
+            out.append({"draw": draw, "seed": seed, "label_min_over_members": float(label.mean()),
+                        "score_mean": float(score.mean()), "below_p_thresh": float((score < float(run_cfg.task.p_thresh)).float().mean())})
+    return out
+
+
+REPLAY_KEYS = ["observation", "action", ("next", "observation"), ("next", "done"), ("next", "truncated"),
+               ("next", "terminated"), ("collector", "traj_ids")]
+
+
 def train_and_watch(cfg, episodes, examples, forward_actor, seed, draw, updates, every, targets):
     run_cfg = config([f"seed={seed}", f"algo.prior_bias_draw={draw}", f"target_init={targets}"])
     torch.manual_seed(seed)
     obs_dim, action_spec = task_dimensions(run_cfg)
     agent = make_reset_agent(run_cfg, obs_dim, action_spec)
     _, replay = make_buffers(run_cfg)
-    keys = ["observation", "action", ("next", "observation"), ("next", "done"), ("next", "truncated"),
-            ("next", "terminated"), ("collector", "traj_ids")]
     for episode in episodes:
-        replay.extend(episode.select(*keys, strict=False))
+        replay.extend(episode.select(*REPLAY_KEYS, strict=False))
     rows = torch.cat([e.select("observation", "action") for e in episodes])
     start = examples.sample(1)
     with torch.no_grad():
@@ -110,6 +138,7 @@ def main():
     parser.add_argument("--updates", type=int, default=500)
     parser.add_argument("--every", type=int, default=25)
     parser.add_argument("--rows", type=int, default=4000, help="reset transitions of failed episodes to collect")
+    parser.add_argument("--init-seeds", type=int, default=20, help="untrained agents measured per draw (0: none)")
     parser.add_argument("--targets", choices=["release", "copy"], default="release",
                         help="how the target classifiers start (the recipe's target_init)")
     parser.add_argument("--out", default=None, help="CSV of every recorded row")
@@ -118,6 +147,21 @@ def main():
     cfg, episodes, examples, outcomes, forward = failed_reset_episodes(args.rows)
     print(f"data: {sum(len(e) for e in episodes)} transitions of {len(episodes)} failed reset episodes "
           f"(reset outcomes while collecting: {outcomes}); {len(examples)} success examples (the start state)")
+    if args.init_seeds:
+        init = at_initialisation(episodes, args.init_seeds)
+        for draw in ("fan_in", "xavier"):
+            mine = [r for r in init if r["draw"] == draw]
+            mean = lambda key: sum(r[key] for r in mine) / len(mine)  # noqa: E731
+            print(f"untrained, {draw:>6}, {len(mine)} seeds x 2000 rows: minimum-over-members label "
+                  f"{mean('label_min_over_members'):.3f} (seeds {min(r['label_min_over_members'] for r in mine):.3f}-"
+                  f"{max(r['label_min_over_members'] for r in mine):.3f}); trigger score {mean('score_mean'):.3f} "
+                  f"(seeds {min(r['score_mean'] for r in mine):.3f}-{max(r['score_mean'] for r in mine):.3f}); "
+                  f"rows below p_thresh {mean('below_p_thresh'):.1%}", flush=True)
+        if args.out:
+            with open(args.out.replace(".csv", "_init.csv"), "w", newline="") as f:
+                writer = csv.DictWriter(f, fieldnames=list(init[0]))
+                writer.writeheader()
+                writer.writerows(init)
     rows = []
     for seed in args.seeds:
         for draw in ("fan_in", "xavier"):
