@@ -3,9 +3,11 @@ from __future__ import annotations
 
 import csv
 import json
+import math
 import sys
 from pathlib import Path
 
+import matplotlib.colors
 import matplotlib.image as mpimg
 import pytest
 
@@ -199,3 +201,198 @@ def test_runs_with_different_settings_are_kept_apart_and_named_by_what_they_chan
     report.report([runs], tmp_path / "alone")
     assert "| peg-insertion (insert) | ours | 0.1 | 2 | 1000 | 3.00 ± 1.00 (paper 29.20) |" in (
         tmp_path / "alone" / "table1.md").read_text()
+
+
+def write_run(root: Path, algo: str, seed: int, task: str = "peg_insertion_insert", steps: int = 4000,
+              config: str | None = None, **tables) -> Path:
+    """A run folder with a summary and the given tables (``progress=(header, rows)``, ...), named by file."""
+    folder = root / task / algo / f"seed{seed}"
+    folder.mkdir(parents=True)
+    summary = {"task": task, "algo": algo, "seed": seed, "p_thresh": 0.1, "steps": steps, "average_return": 1.0,
+               "manual_resets": 1, "forward_share": 0.5, "reset_success_rate": 0.5}
+    (folder / "summary.json").write_text(json.dumps(summary))
+    if config is not None:
+        (folder / "config.yaml").write_text(config)
+    for name, (header, rows) in tables.items():
+        with open(folder / f"{name}.csv", "w", newline="") as f:
+            csv.writer(f).writerows([header, *rows])
+    return folder
+
+
+def _progress(manual, episodes):
+    return ["frames", "manual_resets", "forward_episodes"], [(1000 * (i + 1), m, e) for i, (m, e) in
+                                                             enumerate(zip(manual, episodes))]
+
+
+def _lines(ax) -> dict:
+    return {line.get_label(): line for line in ax.get_lines()}
+
+
+def _texts(ax) -> list[str]:
+    return [t.get_text() for t in ax.texts]
+
+
+def _looks(ax) -> list[tuple]:
+    return [(matplotlib.colors.to_hex(line.get_color()), str(line.get_linestyle()), str(line.get_marker()),
+             line.get_linewidth()) for line in ax.get_lines()]
+
+
+def test_fig3_draws_each_groups_episodic_resets_beside_its_manual_resets_in_its_colour(tmp_path):
+    runs = tmp_path / "runs"
+    write_run(runs, "ours", 0, progress=_progress([2, 4, 6, 8], [3, 6, 9, 12]))
+    write_run(runs, "ours", 1, progress=_progress([4, 6, 8, 10], [5, 8, 11, 14]))
+    write_run(runs, "lnt", 0, progress=_progress([1, 2, 3, 4], [2, 3, 5, 6]))
+    fig = report.fig3_figure("peg_insertion_insert", report.find_runs([runs]))
+    lines = _lines(fig.axes[1])
+    # the mean of the two seeds' forward episodes: (3+5)/2, (6+8)/2, (9+11)/2, (12+14)/2
+    assert list(lines["ours: episodic (n=2)"].get_ydata()) == [4, 7, 10, 13]
+    assert list(lines["LNT: episodic (n=1)"].get_ydata()) == [2, 3, 5, 6]
+    for algo, n in (("ours", 2), ("LNT", 1)):
+        manual, episodic = lines[f"{algo} (n={n})"], lines[f"{algo}: episodic (n={n})"]
+        assert manual.get_color() == episodic.get_color()
+        assert manual.get_linestyle() == "-" and episodic.get_linestyle() == "--"
+    looks = _looks(fig.axes[1])
+    assert len(set(looks)) == len(looks) == 4
+    legend = fig.axes[1].get_legend()
+    assert {t.get_text() for t in legend.get_texts()} == set(lines)
+    assert min(t.get_fontsize() for t in legend.get_texts()) >= 8
+    report.plt.close(fig)
+
+
+def test_fig3_companion_lines_stay_apart_from_other_settings_and_say_when_they_leave_the_panel(tmp_path):
+    runs = tmp_path / "runs"
+    write_run(runs, "ours", 0, progress=_progress([2, 4, 6, 8], [3, 6, 9, 12]))
+    write_run(runs, "ours", 1, progress=_progress([4, 6, 8, 10], [5, 8, 11, 14]))
+    write_run(runs, "lnt", 0, progress=_progress([1, 2, 3, 4], [50, 100, 150, 200]))
+    found = report.find_runs([runs])
+    # two settings of ours, named as assign_settings names them
+    ours = {r.summary["seed"]: r for r in found if r.algo == "ours"}
+    ours[0].setting, ours[1].setting = report.PAPER_SETTING, "algo.initial_logit_bias=-4"
+    fig = report.fig3_figure("peg_insertion_insert", found)
+    ax = fig.axes[1]
+    looks = _looks(ax)
+    assert len(set(looks)) == len(looks) == 6  # ours twice and LNT, each manual and episodic
+    # LNT's 200 episodic resets pass twice the most manual resets (10): the panel stops at 1.08 times the
+    # highest line left in it (ours' option: 14 episodic resets) and the legend names the count
+    assert ax.get_ylim()[1] == pytest.approx(1.08 * 14)
+    assert "LNT: episodic (n=1)\noff the scale: 200 at 4k steps" in _lines(ax)
+    report.plt.close(fig)
+
+
+def test_fig3_says_why_a_forward_return_panel_is_empty_or_flat(tmp_path):
+    runs = tmp_path / "runs"
+    config = "seed: 0\neval_every: 10000\ntask: {name: peg_insertion_insert, p_thresh: 0.1}\nalgo: {name: ours}\n"
+    write_run(runs, "ours", 0, config=config, progress=_progress([1, 2, 3, 4], [1, 2, 3, 4]))
+    fig = report.fig3_figure("peg_insertion_insert", report.find_runs([runs]))
+    assert _texts(fig.axes[0]) == ["no evaluation yet (every 10,000 steps)"]
+    report.plt.close(fig)
+    write_run(runs, "lnt", 0, progress=_progress([1, 2, 3, 4], [1, 2, 3, 4]),
+              eval=(["frames", "forward_return"], [(2000, 0.0), (4000, 0.0)]))
+    write_run(runs, "lnt_sparse", 0, progress=_progress([1, 2, 3, 4], [1, 2, 3, 4]),
+              eval=(["frames", "forward_return"], [(2000, 0.0), (4000, 0.5)]))
+    fig = report.fig3_figure("peg_insertion_insert", report.find_runs([runs]))
+    assert _texts(fig.axes[0]) == ["LNT: forward return 0 at every evaluation so far\n"
+                                   "ours: no evaluation yet (every 10,000 steps)"]
+    report.plt.close(fig)
+
+
+def test_success_rate_per_stretch_counts_the_resets_that_ended_in_the_centred_window():
+    frames = [1000, 2000, 3000, 4000, 5000, 6000, 7000]
+    successful = [0, 1, 1, 3, 3, 3, 3]
+    manual = [1, 1, 2, 2, 4, 4, 4]
+    rate = report.success_rate_per_stretch(frames, successful, manual, 2000)
+    # at 1000: (0, 2000] holds 1 success and 1 manual reset; at 2000: (1000, 3000] 1 and 1; at 3000:
+    # (2000, 4000] 2 and 1; at 4000: (3000, 5000] 2 and 2; at 5000: (4000, 6000] 0 and 2; at 6000 and 7000
+    # nothing ended
+    assert rate[:5] == pytest.approx([1 / 2, 1 / 2, 2 / 3, 2 / 4, 0.0])
+    assert math.isnan(rate[5]) and math.isnan(rate[6])
+
+
+def _diagnostics(seed_shift: float, lnt: bool = False):
+    header = ["frames", "trigger_score_mean", "trigger_score_min", "example_p", "reset_replay_p", "forward_p",
+              "forward_p_min_member"]
+    return header, [(1000 * k, 0.5 + seed_shift, 0.2, 0.9, 0.6, 0.4, 0.4 if lnt else 0.3) for k in range(1, 41)]
+
+
+def _resets():
+    return (["frames", "outcome", "steps", "distance_to_start", "distance_to_examples"],
+            [(500, "manual", 200, 3.0, 2.0), (1500, "success", 40, 0.5, 0.1), (2500, "success", 30, 0.4, 0.1)])
+
+
+def _long_progress():
+    rows = [(1000 * k, k // 2, k - k // 2) for k in range(1, 41)]  # successes and manual resets alternate
+    return ["frames", "successful_resets", "manual_resets"], rows
+
+
+def test_diagnostics_series_are_told_apart_and_say_what_they_plot(tmp_path, monkeypatch):
+    runs = tmp_path / "runs"
+    for seed in range(3):
+        write_run(runs, "ours", seed, steps=40000, diagnostics=_diagnostics(0.1 * seed), resets=_resets(),
+                  progress=_long_progress())
+    members = report.find_runs([runs])
+    fig = report.diagnostics_figure("peg_insertion_insert", "ours", "", members)
+    score, probes, success, distance = fig.axes
+    for ax in fig.axes:
+        looks = _looks(ax)
+        assert len(set(looks)) == len(looks)  # no two series of a panel drawn alike
+    assert len(probes.get_lines()) == 3 * 4 + 1  # three seeds' four probes and p_thresh
+    assert "seed 2: forward replay, lowest member" in _lines(probes)
+    legends = [ax.get_legend() for ax in (score, probes, distance)] + fig.legends
+    assert min(t.get_fontsize() for legend in legends for t in legend.get_texts()) >= 8
+    assert "p_thresh = 0.1" in [t.get_text() for t in probes.get_legend().get_texts()]
+    assert score.get_ylabel().startswith("p:") and probes.get_ylabel().startswith("p:")
+    # a twentieth of 40k steps: windows of 2,000 steps; at 10,000 steps, (9000, 11000] holds one success
+    # (4 at 9k, 5 at 11k) and one manual reset (5 at 9k, 6 at 11k)
+    assert success.get_title() == "reset success rate per 2,000 steps"
+    assert _lines(success)["seed 0"].get_ydata()[9] == pytest.approx(1 / 2)
+    # the distance panel marks each reset episode's outcome; peg-insertion's check is on the peg, not on
+    # this distance, so no line is drawn and the panel says so
+    markers = {label: line.get_marker() for label, line in _lines(distance).items()}
+    assert markers["seed 0: success"] == "o" and markers["seed 0: manual"] == "x"
+    assert list(_lines(distance)["seed 1: success"].get_ydata()) == [0.5, 0.4]
+    assert any("not a bound on this distance" in " ".join(text.split()) for text in _texts(distance))
+    assert not any(label.startswith("reset success") for label in _lines(distance))
+    report.plt.close(fig)
+    # a task whose check is a bound on this distance gets its line instead
+    monkeypatch.setitem(report.RESET_SUCCESS, "peg_insertion_insert", ("within 0.5 of the start", 0.5))
+    fig = report.diagnostics_figure("peg_insertion_insert", "ours", "", members)
+    line = _lines(fig.axes[3])["reset success below 0.5"]
+    assert list(line.get_ydata()) == [0.5, 0.5] and not _texts(fig.axes[3])
+    report.plt.close(fig)
+
+
+def test_lnt_diagnostics_say_q_and_q_thresh_where_they_plot_q(tmp_path):
+    runs = tmp_path / "runs"
+    for seed in range(2):
+        write_run(runs, "lnt", seed, steps=40000, diagnostics=_diagnostics(10.0 * seed, lnt=True),
+                  resets=_resets(), progress=_long_progress(),
+                  config=f"seed: {seed}\ntask: {{name: peg_insertion_insert, p_thresh: 0.1}}\n"
+                         "algo: {name: lnt, threshold: 20.0}\n")
+    fig = report.diagnostics_figure("peg_insertion_insert", "lnt", "", report.find_runs([runs]))
+    score, probes = fig.axes[:2]
+    assert score.get_ylabel() == probes.get_ylabel() == "Q: reset Q-ensemble's minimum"
+    assert "(Q)" in score.get_title() and "(Q)" in probes.get_title()
+    # LNT's trigger takes the members' minimum: the lowest member is the forward-replay line, drawn once
+    assert len(probes.get_lines()) == 2 * 3 + 1
+    legend_texts = [t.get_text() for ax in (score, probes) for t in ax.get_legend().get_texts()]
+    assert "Q_thresh = 20" in legend_texts
+    labels = legend_texts + [line.get_label() for ax in (score, probes) for line in ax.get_lines()]
+    assert not any("p_thresh" in text or text.endswith(" p") for text in labels)
+    assert _lines(score)["Q_thresh = 20"].get_ydata()[0] == 20.0
+    report.plt.close(fig)
+
+
+def test_fig5_is_drawn_for_runs_without_triggers_and_says_so(tmp_path):
+    runs = tmp_path / "runs"
+    write_run(runs, "ours", 0, progress=_progress([1, 2, 3, 4], [1, 2, 3, 4]))
+    written = report.report([runs], tmp_path / "out")
+    assert [p.name for p in written["fig5"]] == ["fig5_peg_insertion_insert_ours.png"]
+    fig = report.fig5_figure("peg_insertion_insert", "ours", "", report.find_runs([runs]))
+    assert _texts(fig.axes[0]) == ["no triggered reset in this run (4,000 steps)"]
+    report.plt.close(fig)
+    write_run(runs, "ours", 1, progress=_progress([1, 2, 3, 4], [1, 2, 3, 4]),
+              triggers=(["frames", "steps", "value", "observation"], [(1500, 10, 0.3, "0.3 0")]))
+    fig = report.fig5_figure("peg_insertion_insert", "ours", "", report.find_runs([runs]))
+    assert _texts(fig.axes[0]) == ["no triggered reset in seed 0"]
+    assert [t.get_text() for t in fig.axes[0].get_legend().get_texts()] == ["seed 1"]
+    report.plt.close(fig)
