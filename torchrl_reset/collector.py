@@ -11,7 +11,7 @@ from tensordict.nn import TensorDictModuleBase
 from tensordict.utils import NestedKey
 from torchrl.collectors import BaseCollector
 from torchrl.envs import EnvBase, TransformedEnv
-from torchrl.envs.transforms import Compose
+from torchrl.envs.transforms import Compose, StepCounter
 from torchrl.envs.utils import ExplorationType, set_exploration_type, step_mdp
 
 from ._validation import check_int, is_int_at_least
@@ -23,6 +23,9 @@ __all__ = ["DualCollector", "find_trigger_transforms"]
 FORWARD = 0
 RESET = 1
 PHASE_NAMES = {FORWARD: "forward", RESET: "reset"}
+# a warning from the loop points at the user's ``for batch in collector`` line, 7 frames up from
+# _check_own_episode_end (_executed, _forward_step or _reset_step, _step, iterator, BaseCollector.__iter__)
+LOOP_DEPTH = 7
 COUNTERS = (
     "forward_steps",
     "reset_steps",
@@ -56,6 +59,65 @@ def find_trigger_transforms(env: EnvBase) -> list[ResetTriggerTransform]:
         visit_transform(env.transform)
         env = env.base_env
     return found
+
+
+def _transforms(env: EnvBase) -> Iterator:
+    """Every transform inside ``env``, outermost env first (nested transformed envs and Compose included)."""
+
+    def visit(transform):
+        if isinstance(transform, Compose):
+            for t in transform.transforms:
+                yield from visit(t)
+        else:
+            yield transform
+
+    while isinstance(env, TransformedEnv):
+        yield from visit(env.transform)
+        env = env.base_env
+
+
+def own_time_limit(env: EnvBase) -> str | None:
+    """The time limit inside ``env`` that would end episodes behind a reset-free loop's back, described
+    (a torchrl ``StepCounter(max_steps=...)``, or gymnasium's ``TimeLimit`` under a torchrl ``GymWrapper``
+    or ``GymEnv``), or None (docs/environment-contract.md)."""
+    for transform in _transforms(env):
+        if isinstance(transform, StepCounter) and transform.max_steps is not None:
+            return f"StepCounter(max_steps={transform.max_steps})"
+    while isinstance(env, TransformedEnv):
+        env = env.base_env
+    layer = getattr(env, "_env", None)  # the gymnasium env inside a torchrl GymWrapper
+    for _ in range(100):  # a gymnasium wrapper stack, outermost first
+        if layer is None:
+            return None
+        if type(layer).__name__ == "TimeLimit":
+            return f"gymnasium's TimeLimit of {getattr(layer, '_max_episode_steps', '?')} steps"
+        layer = getattr(layer, "env", None)
+    return None
+
+
+def truncation_warning(env_name: str, what: str) -> str:
+    """The warning for an env that ends episodes by itself (a time limit): what it costs and the fix."""
+    return (
+        f"{env_name} ends episodes by itself: {what}. DualCollector owns the episode lengths (H_f, H_r) and never "
+        "resets for free, so it carries on from that state, but the step keeps its ('next', 'truncated') / "
+        "('next', 'done') flags and the replay buffers see an episode end there (NStepStateTransform cuts its "
+        "n-step windows at it); a gymnasium TimeLimit then truncates every step after its limit since the last "
+        "env.reset(). Remove the env's time limit: GymEnv(name, max_episode_steps=-1) or "
+        "gymnasium.make(name, max_episode_steps=-1), a StepCounter without max_steps. "
+        "See docs/environment-contract.md. (Warned once per collector.)"
+    )
+
+
+def termination_warning(env_name: str, what: str) -> str:
+    """The warning for an env that terminates episodes by itself: what it costs and the fix."""
+    return (
+        f"{env_name} terminated an episode by itself: {what}. DualCollector ends such an episode with a manual "
+        "reset (env.reset(), counted under counters['terminations']) instead of a reset episode: the reset agent "
+        "does not act after it, and if every forward episode ends this way the reset agent never acts and "
+        "never learns. Unless the termination is a safety stop that must end the episode, remove it and report "
+        "such states in an observation entry instead (for instance 'irrecoverable'): the trigger and the reset "
+        "agent are there to handle them. See docs/environment-contract.md. (Warned once per collector.)"
+    )
 
 
 def set_up_loop(collector, create_env_fn, forward_policy, reset_policy, *, max_forward_steps, max_reset_steps,
@@ -146,8 +208,15 @@ class DualCollector(BaseCollector):
     ``False`` (the authors' release) each policy's exploration state carries over from one of its
     episodes to its next, across the other policy's episodes and manual resets.
 
-    If the env *terminates* (``("next", "terminated")``; the paper's tasks never do), the episode
-    ends and the collector calls ``env.reset()``, counted under ``terminations``.
+    The env must write ``reset_success_key`` (a bool of shape ``(1,)``) in every step's ``"next"``
+    tensordict, computed on the state after the step, and must not end episodes by itself
+    (docs/environment-contract.md). If it *terminates* (``("next", "terminated")``; the paper's tasks
+    never do), the episode ends and the collector calls ``env.reset()``, counted under
+    ``terminations``: no reset episode follows, so if every forward episode ends this way the reset
+    agent never acts. If it *truncates* (a time limit, such as gymnasium's ``TimeLimit``), the
+    collector carries on from that state, but the flag stays on the step and cuts the episode in the
+    replay buffers. Either one is warned about once per collector (a ``UserWarning`` naming the fix;
+    a ``TimeLimit`` or ``StepCounter(max_steps=...)`` found in the env already at construction).
 
     Args:
         create_env_fn (EnvBase or callable): an unbatched env, or a function returning one.
@@ -240,6 +309,11 @@ class DualCollector(BaseCollector):
             )
         self.example_buffer = example_buffer
         self._state_owner = _state_owner(env)
+        # the env's own episode ends already warned about ("truncated", "terminated"), each once per collector
+        self._warned: set[str] = set()
+        limit = own_time_limit(env)
+        if limit is not None:
+            self._warn_once("truncated", truncation_warning(type(env).__name__, f"it has {limit}"), stacklevel=2)
         self.counters: dict[str, int] = dict.fromkeys(COUNTERS, 0)
         self._events: list[dict] = []
         self._td: TensorDictBase | None = None
@@ -366,6 +440,8 @@ class DualCollector(BaseCollector):
         self._phase_steps += 1
         self._frames += 1
         self.counters[f"{PHASE_NAMES[phase]}_steps"] += 1
+        if len(self._warned) < 2:
+            self._check_own_episode_end(td.get("next"), phase)
         step = td.exclude(*_private_keys(td))
         step.set(("collector", "phase"), torch.tensor(phase, device=td.device))
         step.set(("collector", "traj_ids"), torch.tensor(self._traj_id, device=td.device))
@@ -373,6 +449,29 @@ class DualCollector(BaseCollector):
             # every yielded step carries the flag that marks an episode's last step
             step.set(("next", "truncated"), torch.zeros_like(td.get("next").get("done")))
         return step
+
+    def _warn_once(self, kind: str, message: str, stacklevel: int) -> None:
+        if kind not in self._warned:
+            self._warned.add(kind)
+            warnings.warn(message, UserWarning, stacklevel=stacklevel + 1)
+
+    def _check_own_episode_end(self, next_td: TensorDictBase, phase: int) -> None:
+        """Warns (once per collector and kind) when an executed step comes back terminated or truncated by
+        the env itself: the collector's own episode ends (trigger, H_f, success, H_r) are booked after this
+        check, and a triggered step is never executed."""
+        flags = [next_td.get(key, None) for key in ("terminated", "truncated", "done")]
+        raised = [flag is not None and bool(flag.any()) for flag in flags]
+        if not any(raised):
+            return
+        name = type(self.env).__name__
+        where = f"at frame {self._frames}, step {self._phase_steps} of a {PHASE_NAMES[phase]} episode"
+        if raised[0]:
+            self._warn_once("terminated", termination_warning(name, f"('next', 'terminated') = True {where}"),
+                            stacklevel=LOOP_DEPTH)
+        else:
+            key = "truncated" if raised[1] else "done"
+            self._warn_once("truncated", truncation_warning(
+                name, f"('next', {key!r}) = True {where}, which the collector did not cause"), stacklevel=LOOP_DEPTH)
 
     def _forward_step(self) -> tuple[TensorDictBase | None, bool]:
         """One pass of the forward episode's loop (lines 7-18)."""
@@ -474,7 +573,19 @@ class DualCollector(BaseCollector):
 
     # --------------------------------------------------------- state / seeding
     def set_seed(self, seed: int, static_seed: bool = False) -> int:
-        """Seeds torch's global generator (policy noise, sampling) and the env."""
+        """Seeds torch's global generator and the env; call it before the first iteration.
+
+        ``torch.manual_seed(seed)`` covers what the loop draws through torch's global generator: the
+        policies' exploration noise (torchrl's Ornstein-Uhlenbeck and Gaussian modules), the example
+        buffer's samples, and replay buffers whose samplers use it (torchrl's ``RandomSampler``,
+        :class:`~torchrl_reset.EpisodeWindowSampler`). ``env.set_seed(seed, static_seed=static_seed)``
+        seeds the env's own generator (its start states and noise); torchrl seeds a gymnasium env with
+        ``reset(seed=seed)``, which also resets it, so a call during the loop would move the system
+        behind the collector's back. Not seeded here: parameters initialised before this call (seed
+        torch before building the networks), numpy's and Python's global generators, a replay buffer
+        given its own ``generator``, and every other env (an evaluation env). See
+        docs/environment-contract.md. Returns the env's next seed (torchrl's convention).
+        """
         torch.manual_seed(seed)
         return self.env.set_seed(seed, static_seed=static_seed)
 

@@ -33,6 +33,11 @@ class NStepStateTransform(Transform):
     when the trajectory id (``("collector", "traj_ids")``, written by torchrl's collectors and by
     :class:`~torchrl_reset.DualCollector`) changes. Data must be 1-dimensional, in time order.
 
+    So a buffer fed one step at a time stays empty for the first n - 1 steps of its first episode
+    (unless that episode ends sooner): sample it only once ``len(buffer) > 0``, which a heat-up of at
+    least n steps guarantees. Sampled too early, torchrl's samplers raise "Cannot sample from an
+    empty storage"; :class:`EpisodeWindowSampler` says what the buffer is waiting for.
+
     Args:
         n_steps (int): n >= 1. With n = 1 the n-step state equals ``("next", ...)``.
         state_keys (sequence of NestedKey): the state entries to copy. Defaults to ``("observation",)``.
@@ -175,6 +180,23 @@ class NStepStateTransform(Transform):
         return tensordict
 
 
+def _why_empty(storage) -> str:
+    """What an empty replay buffer waits for: the transitions an NStepStateTransform on it holds back."""
+    for buffer in getattr(storage, "_attached_entities", ()):
+        transforms = getattr(buffer, "_transform", None)
+        transforms = getattr(transforms, "transforms", [transforms])  # a Compose, or one transform
+        for transform in transforms:
+            if isinstance(transform, NStepStateTransform):
+                n = transform.n_steps
+                return (
+                    f"The buffer's NStepStateTransform(n_steps={n}) holds back {transform.num_pending} "
+                    f"transition(s): it writes a transition once the state {n} steps after it has arrived or its "
+                    f"episode has ended, so the first rows appear after {n} steps of the first episode, or at its "
+                    f"end. Sample once len(buffer) > 0 (a heat-up of at least {n} of this agent's steps is enough)."
+                )
+    return "Extend the buffer before sampling it."
+
+
 class EpisodeWindowSampler(Sampler):
     """Samples replay rows whose whole n-step window lies inside one episode, episodes first.
 
@@ -271,7 +293,7 @@ class EpisodeWindowSampler(Sampler):
 
     def sample(self, storage, batch_size: int) -> tuple[torch.Tensor, dict]:
         if len(storage) == 0:
-            raise RuntimeError("EpisodeWindowSampler: cannot sample from an empty storage.")
+            raise RuntimeError(f"EpisodeWindowSampler: cannot sample from an empty storage. {_why_empty(storage)}")
         if self._rebuild:
             self._rebuild = False
             self._unread = [torch.arange(len(storage))]
