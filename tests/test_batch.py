@@ -142,11 +142,11 @@ def test_batched_acting_gives_the_per_run_batch_with_a_threshold_per_run(tmp_pat
     each row of the shared trigger uses its own, and both fire."""
     folders = {}
     for acting in ("true", "false"):
-        cfg = config("algo=ours", "total_steps=300", "seeds=[5]", "vary=task.p_thresh", "vary_values=[0.3,0.7]",
+        cfg = config("algo=ours", "total_steps=300", "seeds=[5]", "vary=task.p_thresh", "vary_values=[0.5,0.9]",
                      f"run_dir={tmp_path}/{acting}/p${{task.p_thresh}}", f"speed.batched_acting={acting}")
         summaries = batch.train_batch(cfg, batch.batch_runs(cfg))
         folders[acting] = summaries
-    for threshold in ("0.3", "0.7"):
+    for threshold in ("0.5", "0.9"):
         assert_same_run(tmp_path / "true" / f"p{threshold}", tmp_path / "false" / f"p{threshold}")
     triggered = [s["triggered_resets"] for s in folders["true"]]
     assert triggered == [s["triggered_resets"] for s in folders["false"]]

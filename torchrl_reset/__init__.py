@@ -4,10 +4,11 @@ Implements Kim et al., "Automating Reinforcement Learning with Example-based Res
 """
 from .batched_collector import BatchedDualCollector, split_phases
 from .collector import DualCollector, find_trigger_transforms
-from .ensemble import EnsembleValueOperator, reduce_members, success_classifier, success_probability
+from .ensemble import (EnsembleValueOperator, prior_bias_bound, reduce_members, success_classifier, success_probability,
+                       with_prior)
 from .example_buffer import InitialStateBuffer
 from .nstep import EpisodeWindowSampler, NStepStateTransform
-from .rce_loss import RCELoss
+from .rce_loss import RCELoss, actor_loss, classifier_loss, label_weight, rce_label, shared_label
 from .td_bounds import BoundedTD0Estimator, bound_td0_targets
 from .trigger import ResetTriggerTransform
 from . import accel  # the accelerator: the same numbers, faster (torchrl_reset.accel)
@@ -25,6 +26,13 @@ __all__ = [
     "NStepStateTransform",
     "RCELoss",
     "ResetTriggerTransform",
+    "actor_loss",
+    "classifier_loss",
+    "label_weight",
+    "prior_bias_bound",
+    "rce_label",
+    "shared_label",
+    "with_prior",
     "bound_td0_targets",
     "find_trigger_transforms",
     "reduce_members",

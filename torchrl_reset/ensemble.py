@@ -20,6 +20,7 @@ __all__ = [
     "EnsembleValueOperator",
     "PRIOR_BIAS_DRAWS",
     "prior_bias_bound",
+    "with_prior",
     "reduce_members",
     "success_classifier",
     "success_probability",
@@ -57,6 +58,12 @@ def success_probability(logits: torch.Tensor) -> torch.Tensor:
     ``exp(min(l, 0))``: the same number, computed without cancellation. The result lies in [0, 1].
     """
     return torch.exp(logits.clamp(max=0.0))
+
+
+def with_prior(trained: torch.Tensor, prior: torch.Tensor, prior_scale: float) -> torch.Tensor:
+    """Randomized prior functions (Osband et al., 2018): member i's logit ``f_i(s, a) + beta * g_i(s, a)``,
+    from the trained part's output ``f`` and the fixed prior's ``g`` (any shapes that broadcast)."""
+    return trained + prior_scale * prior
 
 
 def reduce_members(values: torch.Tensor, reduction: str = "mean") -> torch.Tensor:
@@ -284,7 +291,7 @@ class EnsembleValueOperator(TensorDictModuleBase):
         if not self.has_prior:
             return f
         g = plain(obs, action, *self.layer_tensors(params, "prior_"))  # g_i(s, a), fixed
-        return f + self.prior_scale * g  # randomized prior functions (Osband et al., 2018)
+        return with_prior(f, g, self.prior_scale)
 
     def observation_from(self, tensordict: TensorDictBase) -> torch.Tensor:
         """The observation entries this module reads, joined along the last dimension."""

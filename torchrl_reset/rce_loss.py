@@ -14,7 +14,7 @@ from torchrl.objectives import LossModule
 from ._validation import check_int
 from .ensemble import EnsembleValueOperator, success_probability
 
-__all__ = ["RCELoss", "rce_label", "label_weight"]
+__all__ = ["RCELoss", "rce_label", "label_weight", "shared_label", "classifier_loss", "actor_loss"]
 
 
 def _as_tuple(key: NestedKey) -> tuple[str, ...]:
@@ -38,6 +38,50 @@ def label_weight(label: torch.Tensor, gamma: float) -> torch.Tensor:
     classifier value ``c_y = y / (y + gamma (1 - y))`` clipped to [0, 0.5] (``w = w1`` when n = 1)."""
     c_y = (label / (label + gamma * (1.0 - label))).clamp(0.0, 0.5)
     return 1.0 + gamma * c_y / (1.0 - c_y)
+
+
+def shared_label(next_value: torch.Tensor, gamma: float, nstep_value: torch.Tensor | None = None, n_steps: int = 1, *,
+                 clip_values: bool = False, one_step: torch.Tensor | None = None) -> torch.Tensor:
+    """The one label every member trains on (Eq. 2 with the release's n-step mix; docs/method.md sections 3, 9).
+
+    ``next_value`` and ``nstep_value`` are the target classifiers' values ``C'_i`` at ``(s_{t+1}, pi(s_{t+1}))``
+    and ``(s_{t+n}, pi(s_{t+n}))``, ``[..., B, K]`` (any leading dimensions, a run dimension included).
+    Each member's label is :func:`rce_label` of the first, averaged with the n-step one when given; the
+    minimum over the K members is the shared label, clipped at 0.5. ``clip_values`` clips the values to
+    [0, 0.5] first (the other reading of section 9); ``one_step``, a boolean broadcastable to the values'
+    leading dimensions (``[..., 1, 1]``), keeps the one-step label where it holds (a run whose batch fell
+    back to n = 1). Returns ``[..., B]``.
+    """
+    if clip_values:
+        next_value = next_value.clamp(0.0, 0.5)
+        nstep_value = None if nstep_value is None else nstep_value.clamp(0.0, 0.5)
+    label = rce_label(next_value, gamma)
+    if nstep_value is not None:  # "Implementation details": y = (one-step label + n-step label) / 2
+        both = 0.5 * (label + rce_label(nstep_value, gamma**n_steps))
+        label = both if one_step is None else torch.where(one_step, label, both)
+    return label.amin(-1).clamp(max=0.5)
+
+
+def classifier_loss(example_logits: torch.Tensor, replay_logits: torch.Tensor, label: torch.Tensor,
+                    weight: torch.Tensor, gamma: float) -> torch.Tensor:
+    """Eq. 2 summed over members: ``(1 - gamma) mean_{s*} CE(C_i(s*, pi(s*)); 0.5) + mean_t w CE(C_i(s_t, a_t); y)``.
+
+    Logits ``[..., B, K]`` (the success examples' and the replay rows'), the shared label and weight
+    ``[..., B]``; the success label 1 is clipped to 0.5 like every label. Returns ``[...]``.
+    """
+    loss_examples = (1.0 - gamma) * F.binary_cross_entropy_with_logits(
+        example_logits, torch.full_like(example_logits, 0.5), reduction="none"
+    ).mean(-2)
+    loss_replay = F.binary_cross_entropy_with_logits(
+        replay_logits, label.unsqueeze(-1).expand_as(replay_logits), weight=weight.unsqueeze(-1), reduction="none"
+    ).mean(-2)
+    return (loss_examples + loss_replay).sum(-1)
+
+
+def actor_loss(actor_logits: torch.Tensor) -> torch.Tensor:
+    """The reset actor's loss, ``-mean_t min_i C_i(s_t, pi(s_t))`` (C itself, not the ratio), from the
+    logits ``[..., B, K]`` of the policy's actions with the classifiers held fixed. Returns ``[...]``."""
+    return -torch.sigmoid(actor_logits).amin(-1).mean(-1)
 
 
 class RCELoss(LossModule):
@@ -249,14 +293,14 @@ class RCELoss(LossModule):
         source = self.classifier_network_params
         # read the module directly: the attribute access would warn that no target updater exists yet
         target = self._modules["target_classifier_network_params"]
-        unlocked = target.is_locked
-        if unlocked:
+        was_locked = target.is_locked
+        if was_locked:
             target.unlock_()
         for key in list(source.keys(True, True)):
             name = key if isinstance(key, str) else key[-1]
             if name.startswith("prior_"):
                 target.set(key, source.get(key))
-        if unlocked:
+        if was_locked:
             target.lock_()
 
     def set_keys(self, **kwargs) -> None:
@@ -346,17 +390,17 @@ class RCELoss(LossModule):
             return self._label_and_weight(replay)
 
     def _label_and_weight(self, replay: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor]:
-        batch, gamma = replay.shape[0], self.gamma
+        batch = replay.shape[0]
         targets = self._target_states(replay)  # s_{t+1} rows, then s_{t+n} rows
         # Eq. 1: C'_i at the next states with the policy's actions, from the target classifiers
         value = torch.sigmoid(self._classify(targets, self._act(targets), self.target_classifier_network_params))
-        if self.clip_target_values:
-            value = value.clamp(0.0, 0.5)
-        label = rce_label(value[:batch], gamma)  # Eq. 2's label from w^(t)
-        if value.shape[0] > batch:  # "Implementation details": y = (one-step label + n-step label) / 2
-            label = 0.5 * (label + rce_label(value[batch:], gamma**self.n_steps))
-        label = label.amin(-1).clamp(max=0.5)  # the ensemble minimum, shared by all members
-        return label, label_weight(label, gamma)
+        return self._labels_of(value, batch)
+
+    def _labels_of(self, value: torch.Tensor, batch: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """The shared label and weight from the target values at ``s_{t+1}`` (rows ``:batch``) and ``s_{t+n}``."""
+        nstep = value[batch:] if value.shape[0] > batch else None
+        label = shared_label(value[:batch], self.gamma, nstep, self.n_steps, clip_values=self.clip_target_values)
+        return label, label_weight(label, self.gamma)
 
     def _read(self, tensordict: TensorDictBase):
         """The batch's replay rows, ``s_t``, ``a_t`` and success examples, checked."""
@@ -386,18 +430,11 @@ class RCELoss(LossModule):
         return self._classifier_loss(example_logits, replay_logits, label, weight), label, weight, replay_logits, example_logits
 
     def _classifier_loss(self, example_logits, replay_logits, label, weight) -> torch.Tensor:
-        loss_examples = (1.0 - self.gamma) * F.binary_cross_entropy_with_logits(
-            example_logits, torch.full_like(example_logits, 0.5), reduction="none"
-        ).mean(0)
-        loss_replay = F.binary_cross_entropy_with_logits(
-            replay_logits, label.unsqueeze(-1).expand_as(replay_logits), weight=weight.unsqueeze(-1), reduction="none"
-        ).mean(0)
-        return (loss_examples + loss_replay).sum()
+        return classifier_loss(example_logits, replay_logits, label, weight, self.gamma)
 
     def _actor_loss(self, states: TensorDictBase) -> torch.Tensor:
         """The actor: gradient ascent on the ensemble minimum of C_i(s, pi(s)), the classifier held fixed."""
-        actor_logits = self._classify(states, self._act(states), self.classifier_network_params.detach())
-        return -torch.sigmoid(actor_logits).amin(-1).mean()
+        return actor_loss(self._classify(states, self._act(states), self.classifier_network_params.detach()))
 
     def loss_classifier(self, tensordict: TensorDictBase) -> tuple[torch.Tensor, dict]:
         """The classifier loss alone (Eq. 2; gradient to the trainable classifier parameters only) and its

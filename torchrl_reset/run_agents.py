@@ -12,7 +12,8 @@ run's parameters, targets and optimizer state exactly as they were.
 
 The losses are the single-run losses, per run: :class:`~torchrl.objectives.DDPGLoss` (TD(0) target,
 squared error, means over the batch and the members) and :class:`~torchrl_reset.RCELoss` (Eq. 2-3,
-built from the same :func:`~torchrl_reset.rce_label` and :func:`~torchrl_reset.label_weight`). They
+built from the same :func:`~torchrl_reset.rce_loss.shared_label`, :func:`~torchrl_reset.label_weight`,
+:func:`~torchrl_reset.rce_loss.classifier_loss` and :func:`~torchrl_reset.rce_loss.actor_loss`). They
 agree with the run alone to float32 rounding, not bit for bit: batched products sum in another order
 (``tests/test_run_agents.py``).
 """
@@ -21,15 +22,14 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import torch
-import torch.nn.functional as F
 from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import TensorDictModule
 from torch import nn
 from torchrl.modules import TanhModule
 
-from .accel.ensemble import _members_linear
-from .ensemble import EnsembleValueOperator
-from .rce_loss import label_weight, rce_label
+from .accel.ensemble import members_head as _head, members_trunk as _trunk
+from .ensemble import EnsembleValueOperator, with_prior
+from .rce_loss import actor_loss, classifier_loss, label_weight, shared_label
 from .runs import RunMaskedAdam, RunMaskedSoftUpdate
 
 __all__ = ["bind_runs", "RunPolicies", "RunEnsembles", "RunDDPGUpdate", "RunRCEUpdate"]
@@ -150,21 +150,6 @@ def _per_member(x: torch.Tensor, k: int) -> torch.Tensor:
     return x.unsqueeze(1).expand(runs, k, *x.shape[1:]).reshape(runs * k, n, x.shape[-1])
 
 
-def _trunk(x: torch.Tensor, weights: list[torch.Tensor], biases: list[torch.Tensor]) -> torch.Tensor:
-    """The state part of M members on their own rows ``[M, N, d]``: layer 0 and layer 1's state half."""
-    hidden = torch.baddbmm(biases[0].unsqueeze(-2), x, weights[0]).relu_()
-    return _members_linear(hidden, weights[1], biases[1])
-
-
-def _head(trunk: torch.Tensor, action: torch.Tensor, weights: list[torch.Tensor], biases: list[torch.Tensor],
-          action_weight: torch.Tensor, *, overwrite: bool = False) -> torch.Tensor:
-    """The rest of M members from their trunk ``[M, N, h1]`` and their actions ``[M, N, a]``: ``[M, N]``."""
-    hidden = trunk.baddbmm_(action, action_weight) if overwrite else torch.baddbmm(trunk, action, action_weight)
-    for i in range(2, len(weights)):
-        hidden = _members_linear(hidden.relu_(), weights[i], biases[i])
-    return hidden.squeeze(-1)
-
-
 class RunEnsembles:
     """S runs' :class:`~torchrl_reset.EnsembleValueOperator` ensembles of K members, as S*K members.
 
@@ -226,7 +211,7 @@ class RunEnsembles:
             x, a = _per_member(observation, k), _per_member(action, k)
             f = _head(_trunk(x, *layers[:2]), a, *layers)
             g = _head(_trunk(x, *priors[:2]), a, *priors)  # frozen: gradient reaches the action only
-            return (f + self.prior_scale * g).reshape(count, k, n).transpose(1, 2)
+            return with_prior(f, g, self.prior_scale).reshape(count, k, n).transpose(1, 2)
         # without gradients, on many rows, each run's trained and prior members run as one stack of 2K
         def both(trained: torch.Tensor, prior: torch.Tensor) -> torch.Tensor:
             return torch.cat([trained.reshape(count, k, *trained.shape[1:]), prior.reshape(count, k, *prior.shape[1:])],
@@ -236,7 +221,7 @@ class RunEnsembles:
                    both(layers[2], priors[2]))
         out = _head(_trunk(_per_member(observation, 2 * k), *stacked[:2]), _per_member(action, 2 * k), *stacked,
                     overwrite=True).reshape(count, 2 * k, n)
-        return (out[:, :k] + self.prior_scale * out[:, k:]).transpose(1, 2)
+        return with_prior(out[:, :k], out[:, k:], self.prior_scale).transpose(1, 2)
 
     def module(self, out_key: str | None = None) -> TensorDictModule:
         """The S runs' ensembles scoring a batch of S rows, row ``s`` by run ``s``'s K members (the trigger's
@@ -264,10 +249,10 @@ class RunEnsembles:
             priors = self._layers(self.priors, runs, prefix="prior_")
             with torch.no_grad():
                 prior_trunk = _trunk(x, *priors[:2])
-            policy = policy + self.prior_scale * _head(prior_trunk[:, start:], policy_act, *priors)
+            policy = with_prior(policy, _head(prior_trunk[:, start:], policy_act, *priors), self.prior_scale)
             with torch.no_grad():
                 prior = _head(prior_trunk, act, *priors, overwrite=True)
-            out = out + self.prior_scale * prior
+            out = with_prior(out, prior, self.prior_scale)
         return out.reshape(count, k, n).transpose(1, 2), policy.reshape(count, k, n - start).transpose(1, 2)
 
 
@@ -477,15 +462,12 @@ class RunRCEUpdate(_RunUpdate):
     def _labels_from(self, samples, targets: torch.Tensor, actions: torch.Tensor, runs) -> tuple[torch.Tensor, torch.Tensor]:
         gamma, batch = self.gamma, samples[0].shape[0]
         value = torch.sigmoid(self.ensembles.logits(targets, actions, runs, target=True))
-        if self.clip:
-            value = value.clamp(0.0, 0.5)
-        label = rce_label(value[:, :batch], gamma)
+        nstep = one_step = None
         if self.n_steps > 1:
-            both = 0.5 * (label + rce_label(value[:, batch:], gamma**self.n_steps))
+            nstep = value[:, batch:]
             one_step = torch.tensor([bool(s.get(self.one_step_key, torch.zeros(1, dtype=torch.bool)).all())
-                                     for s in samples], device=label.device).reshape(-1, 1, 1)
-            label = torch.where(one_step, label, both)  # a run whose batch fell back to one-step labels
-        label = label.amin(-1).clamp(max=0.5)
+                                     for s in samples], device=value.device).reshape(-1, 1, 1)
+        label = shared_label(value[:, :batch], gamma, nstep, self.n_steps, clip_values=self.clip, one_step=one_step)
         return label, label_weight(label, gamma)
 
     def labels(self, samples: Sequence[TensorDictBase], runs: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
@@ -509,11 +491,5 @@ class RunRCEUpdate(_RunUpdate):
             torch.cat([examples, obs], 1), torch.cat([example_action, action.to(example_action.dtype)], 1),
             self.policies(obs, runs), batch, runs)
         example_logits, replay_logits = logits[:, :batch], logits[:, batch:]
-        loss_examples = (1.0 - gamma) * F.binary_cross_entropy_with_logits(
-            example_logits, torch.full_like(example_logits, 0.5), reduction="none").mean(1)
-        loss_replay = F.binary_cross_entropy_with_logits(
-            replay_logits, label.unsqueeze(-1).expand_as(replay_logits), weight=weight.unsqueeze(-1),
-            reduction="none").mean(1)
-        loss_classifier = (loss_examples + loss_replay).sum(-1)
-        loss_actor = -torch.sigmoid(actor_logits).amin(-1).mean(-1)
-        return {"loss_actor": loss_actor, "loss_classifier": loss_classifier}
+        return {"loss_actor": actor_loss(actor_logits),
+                "loss_classifier": classifier_loss(example_logits, replay_logits, label, weight, gamma)}

@@ -17,9 +17,9 @@ import math
 import torch
 from tensordict import TensorDictBase
 
-from ..ensemble import EnsembleValueOperator
+from ..ensemble import EnsembleValueOperator, with_prior
 
-__all__ = ["FastEnsembleValueOperator"]
+__all__ = ["FastEnsembleValueOperator", "members_trunk", "members_head"]
 
 
 def _row_split(members: int, rows: int, device: torch.device) -> int:
@@ -61,6 +61,39 @@ def _members_linear(x: torch.Tensor, weight: torch.Tensor, bias: torch.Tensor) -
         weight.unsqueeze(1).expand(members, split, *weight.shape[1:]).reshape(blocks, *weight.shape[1:]),
     )
     return out.view(members, rows, -1).add_(bias.unsqueeze(-2))
+
+
+def members_trunk(x: torch.Tensor, weights: list[torch.Tensor], biases: list[torch.Tensor]) -> torch.Tensor:
+    """The state part of M stacked members: layer 0 and the state half of layer 1 with its bias, before the
+    action joins. ``x``: ``[N, d]`` shared by the members, or ``[M, N, d]`` one set of rows per member.
+    Returns ``[M, N, h1]``."""
+    if x.dim() == 2:
+        x = x.unsqueeze(0).expand(weights[0].shape[0], *x.shape)
+    hidden = torch.baddbmm(biases[0].unsqueeze(-2), x, weights[0]).relu_()
+    return _members_linear(hidden, weights[1], biases[1])
+
+
+def members_head(
+    trunk: torch.Tensor,
+    action: torch.Tensor,
+    weights: list[torch.Tensor],
+    biases: list[torch.Tensor],
+    action_weight: torch.Tensor,
+    *,
+    overwrite: bool = False,
+) -> torch.Tensor:
+    """The rest of M members from their trunk ``[M, N, h1]`` and the actions, ``[N, a]`` shared or
+    ``[M, N, a]``: ``[M, N]`` logits.
+
+    ``overwrite=True`` adds the action part into ``trunk`` itself (no copy of it): only for a trunk that
+    nothing reads afterwards (autograd does not keep the trunk for backward).
+    """
+    if action.dim() == 2:
+        action = action.unsqueeze(0).expand(trunk.shape[0], *action.shape)
+    hidden = trunk.baddbmm_(action, action_weight) if overwrite else torch.baddbmm(trunk, action, action_weight)
+    for i in range(2, len(weights)):
+        hidden = _members_linear(hidden.relu_(), weights[i], biases[i])
+    return hidden.squeeze(-1)
 
 
 class _PriorStateCache:
@@ -152,39 +185,8 @@ class FastEnsembleValueOperator(EnsembleValueOperator):
         if "_prior_cache" not in self.__dict__:
             self._prior_cache = _PriorStateCache()
 
-    @staticmethod
-    def _trunk(obs: torch.Tensor, weights: list[torch.Tensor], biases: list[torch.Tensor]) -> torch.Tensor:
-        """The state-only part of M stacked members on shared [N, d] observations: layer 0 and the
-        state half of layer 1 with its bias, before the action joins. Returns [M, N, h1]."""
-        members = weights[0].shape[0]
-        x = obs.unsqueeze(0).expand(members, *obs.shape)
-        hidden = torch.baddbmm(biases[0].unsqueeze(-2), x, weights[0]).relu_()
-        return _members_linear(hidden, weights[1], biases[1])
-
-    @staticmethod
-    def _head(
-        trunk: torch.Tensor,
-        action: torch.Tensor,
-        weights: list[torch.Tensor],
-        biases: list[torch.Tensor],
-        action_weight: torch.Tensor,
-        *,
-        overwrite: bool = False,
-    ) -> torch.Tensor:
-        """The rest of M members from their trunk output [M, N, h1] and shared [N, a] actions: [M, N] logits.
-
-        ``overwrite=True`` adds the action part into ``trunk`` itself (no copy of it): only for a
-        trunk that nothing reads afterwards (autograd does not keep the trunk for backward).
-        """
-        members = trunk.shape[0]
-        actions = action.unsqueeze(0).expand(members, *action.shape)
-        if overwrite:
-            hidden = trunk.baddbmm_(actions, action_weight)
-        else:
-            hidden = torch.baddbmm(trunk, actions, action_weight)
-        for i in range(2, len(weights)):
-            hidden = _members_linear(hidden.relu_(), weights[i], biases[i])
-        return hidden.squeeze(-1)
+    _trunk = staticmethod(members_trunk)
+    _head = staticmethod(members_head)
 
     @classmethod
     def members_forward(
@@ -215,7 +217,7 @@ class FastEnsembleValueOperator(EnsembleValueOperator):
             out = self.members_forward(obs, act, weights, biases, action_weight)
             p_weights, p_biases, p_action_weight = self.layer_tensors(params, "prior_")
             prior = self.members_forward(obs, act, p_weights, p_biases, p_action_weight)
-            out = out + self.prior_scale * prior
+            out = with_prior(out, prior, self.prior_scale)
         else:
             # Without gradients, trained and prior members run as one stack of 2K.
             p_weights, p_biases, p_action_weight = self.layer_tensors(params, "prior_")
@@ -226,7 +228,7 @@ class FastEnsembleValueOperator(EnsembleValueOperator):
                 [torch.cat(pair) for pair in zip(biases, p_biases)],
                 torch.cat([action_weight, p_action_weight]),
             )
-            out = stacked[:k] + self.prior_scale * stacked[k:]
+            out = with_prior(stacked[:k], stacked[k:], self.prior_scale)
         return out.transpose(0, 1).reshape(*batch, k)
 
     def paired_logits(
@@ -288,7 +290,7 @@ class FastEnsembleValueOperator(EnsembleValueOperator):
                     prior_trunk = self._trunk(obs, p_weights, p_biases)
             rest = prior_trunk if use_cache else prior_trunk[:, start:]
             if with_policy:  # the policy's prior first: the replay rows' prior then reuses the trunk's memory
-                policy = policy + self.prior_scale * self._head(rest, policy_act, *p_layers)
+                policy = with_prior(policy, self._head(rest, policy_act, *p_layers), self.prior_scale)
             with torch.no_grad():
                 if use_cache:
                     prior = torch.cat([
@@ -297,5 +299,5 @@ class FastEnsembleValueOperator(EnsembleValueOperator):
                     ], 1)
                 else:
                     prior = self._head(prior_trunk, act, *p_layers, overwrite=True)
-            out = out + self.prior_scale * prior
+            out = with_prior(out, prior, self.prior_scale)
         return out.transpose(0, 1), policy.transpose(0, 1) if with_policy else None

@@ -2,10 +2,9 @@
 from __future__ import annotations
 
 import torch
-import torch.nn.functional as F
 from tensordict import TensorDictBase
 
-from ..rce_loss import RCELoss, _as_tuple, label_weight, rce_label
+from ..rce_loss import RCELoss, _as_tuple, actor_loss, classifier_loss
 from .ensemble import FastEnsembleValueOperator
 
 __all__ = ["FastRCELoss"]
@@ -37,16 +36,8 @@ class FastRCELoss(RCELoss):
 
     def _labels_from(self, observation: torch.Tensor, action: torch.Tensor, batch: int) -> tuple[torch.Tensor, torch.Tensor]:
         """Labels and weights from ``s_{t+1}`` (and ``s_{t+n}``) stacked, with the policy's actions there."""
-        gamma = self.gamma
         logits = self.classifier_network.logits(observation, action, self.target_classifier_network_params)
-        value = torch.sigmoid(logits)
-        if self.clip_target_values:
-            value = value.clamp(0.0, 0.5)
-        label = rce_label(value[:batch], gamma)
-        if value.shape[0] > batch:  # the n-step part
-            label = 0.5 * (label + rce_label(value[batch:], gamma**self.n_steps))
-        label = label.amin(-1).clamp(max=0.5)
-        return label, label_weight(label, gamma)
+        return self._labels_of(torch.sigmoid(logits), batch)
 
     def _fast_terms(self, tensordict: TensorDictBase, with_actor: bool):
         """The classifier loss (and, with ``with_actor``, the actor loss on the same pass) with its label,
@@ -75,8 +66,8 @@ class FastRCELoss(RCELoss):
             self.classifier_network_params, slots=slots,
         )
         example_logits, replay_logits = logits[:batch], logits[batch:]
-        loss_classifier = self._classifier_loss(example_logits, replay_logits, label, weight)
-        loss_actor = None if actor_logits is None else -torch.sigmoid(actor_logits).amin(-1).mean()
+        loss_classifier = classifier_loss(example_logits, replay_logits, label, weight, self.gamma)
+        loss_actor = None if actor_logits is None else actor_loss(actor_logits)
         return loss_classifier, loss_actor, label, weight, replay_logits, example_logits
 
     def loss_classifier(self, tensordict: TensorDictBase):
@@ -91,7 +82,7 @@ class FastRCELoss(RCELoss):
         states = self._require(self._replay(tensordict), None, "s_t")
         net = self.classifier_network
         logits = net.logits(net.observation_from(states), self._act(states), self.classifier_network_params.detach())
-        return -torch.sigmoid(logits).amin(-1).mean(), {}
+        return actor_loss(logits), {}
 
     def forward(self, tensordict: TensorDictBase):
         if not self._fast():
