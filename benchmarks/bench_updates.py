@@ -14,8 +14,7 @@ Measures, in one run:
    memory kept, the matrix-product precision ``auto`` chose; the RCE update also with plain
    float32 products): the replay sample from the recipe's buffers (and the success-example sample),
    the loss, backward, the optimizer step and the target update, for the forward DDPG agent
-   (batch 64; eager, the recipe's default, through ``torch.compile``, and with torchrl's own
-   ``DDPGLoss`` in place of the recipe's ``DirectDDPGLoss`` for comparison), the RCE reset agent
+   (batch 64, torchrl's ``DDPGLoss``; eager, the recipe's default, and through ``torch.compile``), the RCE reset agent
    (K = 5, batch 256 + 256 examples, n = 10, priors) and the LNT reset agent (K = 20, batch 256), each
    also on the plain reference path (``speed.accelerate=false``) for the accelerator's gain,
    with the networks of the paper (400-300) on peg-insertion's sizes (14 observations, 7 actions).
@@ -103,14 +102,13 @@ def filled_buffers(cfg, transitions: int = 5000):
 
 
 def make_update(kind: str, *, members: int | None = None, batch: int | None = None, compiled: bool | None = None,
-                device: str = "cpu", stock_loss: bool = False, accelerate: bool = True):
+                device: str = "cpu", accelerate: bool = True):
     """A closure running one whole update of ``kind`` (forward, ours, lnt) as the recipe runs it.
 
     Everything one step of that agent costs: the replay sample (and the success-example sample),
     moved to ``device`` as the recipe moves it, the loss, backward, the optimizer step and the
     target update. ``compiled`` overrides the recipe's ``speed.compile`` choice for this agent.
-    ``stock_loss`` (forward only) swaps the recipe's loss for torchrl's own ``DDPGLoss`` on the
-    same networks, for comparison. ``accelerate=False`` builds the agent as ``speed.accelerate=false``
+    ``accelerate=False`` builds the agent as ``speed.accelerate=false``
     does: the plain reference classes and torch's default Adam.
     """
     overrides = {"device": device} if members is None else {"algo.num_members": members, "device": device}
@@ -122,8 +120,7 @@ def make_update(kind: str, *, members: int | None = None, batch: int | None = No
     cfg = paper_config("ours" if kind == "forward" else kind, **overrides)
     forward_rb, reset_rb, examples = filled_buffers(cfg)
     if kind == "forward":
-        loss_class = DDPGLoss if stock_loss else None  # None: the class speed.accelerate picks
-        agent = train_utils.make_forward_agent(cfg, OBS, action_spec(), loss_class=loss_class)
+        agent = train_utils.make_forward_agent(cfg, OBS, action_spec())
         names = ("loss_actor", "loss_value")
     else:
         agent = train_utils.make_reset_agent(cfg, OBS, action_spec())
@@ -144,7 +141,7 @@ def make_update(kind: str, *, members: int | None = None, batch: int | None = No
             return td
         return train_utils.lnt_batch(td, cfg.algo, cfg.algo.num_members)
 
-    def update():
+    def update():  # one joint step on both losses (update_order=joint); the release's order adds an actor pass
         losses = loss(sample())
         total = sum(losses[n] for n in names)
         agent.optimizer.zero_grad()
@@ -329,33 +326,31 @@ def main(argv=None) -> dict:
     rows = []
     reset_label = "reset RCE update (K = 5, batch 256 + 256 examples, n = 10)"
     compile_label = "forward DDPG update (batch 64), torch.compile"
-    stock_label = "forward DDPG update (batch 64), eager, torchrl's DDPGLoss"
-    # (label, kind, compiled, products, torchrl's own DDPGLoss, accelerated); the last three rows are the
+    # (label, kind, compiled, products, accelerated); the last three rows are the
     # plain reference path of each update (speed.accelerate=false), for the accelerator's gain
     cases = [
-        ("forward DDPG update (batch 64), eager", "forward", False, precision, False, True),
-        (compile_label, "forward", True, precision, False, True),
-        (stock_label, "forward", False, precision, True, True),
-        (reset_label, "ours", False, precision, False, True),
-        ("reset LNT update (K = 20, batch 256)", "lnt", False, precision, False, True),
-        ("forward DDPG update (batch 64), reference path", "forward", False, "ieee", False, False),
-        (reset_label + ", reference path", "ours", False, "ieee", False, False),
-        ("reset LNT update (K = 20, batch 256), reference path", "lnt", False, "ieee", False, False),
+        ("forward DDPG update (batch 64), eager", "forward", False, precision, True),
+        (compile_label, "forward", True, precision, True),
+        (reset_label, "ours", False, precision, True),
+        ("reset LNT update (K = 20, batch 256)", "lnt", False, precision, True),
+        ("forward DDPG update (batch 64), reference path", "forward", False, "ieee", False),
+        (reset_label + ", reference path", "ours", False, "ieee", False),
+        ("reset LNT update (K = 20, batch 256), reference path", "lnt", False, "ieee", False),
     ]
     if precision != "ieee":
-        cases.insert(4, (reset_label + ", plain float32 products", "ours", False, "ieee", False, True))
+        cases.insert(3, (reset_label + ", plain float32 products", "ours", False, "ieee", True))
     if not args.compile:
         cases = [c for c in cases if not c[2]]
     # In rounds: every update is timed a third of its repeats per round, the updates in turn, so that
     # a slow spell of the shared machine weighs on all of them alike rather than on one row.
-    updates = [make_update(kind, compiled=compiled, device=device, stock_loss=stock, accelerate=fast)
-               for _, kind, compiled, _, stock, fast in cases]
+    updates = [make_update(kind, compiled=compiled, device=device, accelerate=fast)
+               for _, kind, compiled, _, fast in cases]
     times = [[] for _ in cases]
     for _ in range(args.rounds):
         for i, case in enumerate(cases):
             with accel.matmul_products(case[3]):  # as the recipe runs its updates
                 times[i] += run_timed(updates[i], max(1, repeats // args.rounds), device=device, **warm)
-    for i, (label, kind, compiled, p, _, _) in enumerate(cases):
+    for i, (label, kind, compiled, p, _) in enumerate(cases):
         result = summary(times[i])
         if kind == "forward" and i > 0:  # the same arithmetic as the first row
             result["flops"] = rows[0]["flops"]
@@ -376,9 +371,9 @@ def main(argv=None) -> dict:
     by = {(r["members"], r["batch"]): r["median_ms"] for r in scaling}
     by_label = {c[0]: r for r, c in zip(rows, cases)}
     forward, ours = rows[0], by_label[reset_label]  # the recipe's defaults: both losses eager
-    compiled, stock_forward = by_label.get(compile_label), by_label[stock_label]
-    lnt = next(r for r, c in zip(rows, cases) if c[1] == "lnt" and c[5])
-    reference = {c[1]: r for r, c in zip(rows, cases) if not c[5]}
+    compiled = by_label.get(compile_label)
+    lnt = next(r for r, c in zip(rows, cases) if c[1] == "lnt" and c[4])
+    reference = {c[1]: r for r, c in zip(rows, cases) if not c[4]}
     gains = {"forward": reference["forward"]["median_ms"] / forward["median_ms"],
              "ours": reference["ours"]["median_ms"] / ours["median_ms"],
              "lnt": reference["lnt"]["median_ms"] / lnt["median_ms"]}
@@ -394,7 +389,6 @@ def main(argv=None) -> dict:
         targets.append(("K = 20 costs < 4x K = 5 (batch 256)", by[(20, 256)] / by[(5, 256)], by[(20, 256)] < 4 * by[(5, 256)]))
     report = {"machine": machine(device), "matmul_precision": precision,
               "matmul_gflops": {p: r / 1e9 for p, r in rates.items()}, "updates": rows, "scaling": scaling,
-              "forward_vs_torchrl_ddpg_loss": stock_forward["median_ms"] / forward["median_ms"],
               "reference_vs_accelerated": gains,
               "targets": [{"target": t, "measured": v, "met": ok} for t, v, ok in targets]}
 
@@ -410,9 +404,7 @@ def main(argv=None) -> dict:
     for r in rows:
         lines.append(f"| {r['update']} | {r['precision']} | {r['median_ms']:.2f} | {r['min_ms']:.2f} | {r['flops'] / 1e9:.3f} | "
                      f"{r['flop_limit_ms']:.2f} | {100 * r['fraction_of_limit']:.0f}% |")
-    lines += ["", "The forward update through torchrl's `DDPGLoss`, in times the recipe's (`DirectDDPGLoss`), "
-              f"medians: {report['forward_vs_torchrl_ddpg_loss']:.2f}x.",
-              "", "The plain reference path (`speed.accelerate=false`), in times the accelerated update, medians: "
+    lines += ["", "The plain reference path (`speed.accelerate=false`), in times the accelerated update, medians: "
               + ", ".join(f"{name} {gain:.2f}x" for name, gain in gains.items()) + ".",
               "", f"Reset RCE update ({precision} products), median ms (rows: K; columns: batch):", "",
               "| K | " + " | ".join(str(b) for b in args.scaling_batches) + " |",

@@ -13,7 +13,8 @@ from torch import nn
 from torchrl.modules import OrnsteinUhlenbeckProcessModule, TanhModule
 from torchrl.objectives import SoftUpdate
 
-from torchrl_reset import ResetTriggerTransform, accel, bound_td0_targets
+from torchrl_reset import ResetTriggerTransform, accel
+from torchrl_reset.td_bounds import bound_td0_targets
 
 __all__ = ["speed_components", "make_actor", "with_exploration", "exploration_settings", "make_adam", "Agent", "make_forward_agent", "make_reset_agent", "make_trigger", "lnt_batch", "reset_tau"]
 
@@ -84,18 +85,15 @@ class Agent:
     model: Any  # the critic or classifier ensemble
 
 
-def make_forward_agent(cfg: DictConfig, obs_dim: int, action_spec, loss_class: type | None = None) -> Agent:
-    """DDPG with the paper's critic layout (action joined after the first hidden layer).
-
-    ``loss_class``: by default the accelerator's :class:`~torchrl_reset.accel.DirectDDPGLoss` (or torchrl's
-    ``DDPGLoss`` with ``speed.accelerate=false``); the benchmarks pass either to compare the two."""
+def make_forward_agent(cfg: DictConfig, obs_dim: int, action_spec) -> Agent:
+    """DDPG (torchrl's ``DDPGLoss``) with the paper's critic layout (action joined after the first hidden layer)."""
     parts = speed_components(cfg)
     act_dim = action_spec.shape[-1]
     actor = make_actor(obs_dim, action_spec, cfg.hidden_sizes, parts)
     critic = parts.ensemble(
         obs_dim, act_dim, num_members=1, hidden_sizes=tuple(cfg.hidden_sizes), prior_scale=0.0, out_keys=["state_action_value"]
     )
-    loss = (loss_class or parts.ddpg_loss)(actor, critic, delay_actor=True, delay_value=True)
+    loss = parts.ddpg_loss(actor, critic, delay_actor=True, delay_value=True)
     loss.make_value_estimator(gamma=cfg.gamma)
     optimizer = make_adam(cfg, [
         {"params": list(loss.actor_network_params.values(True, True)), "lr": cfg.forward.actor_lr},

@@ -40,7 +40,7 @@ class BoundedTD0Estimator(TD0Estimator):
 
     Examples:
         >>> import torch
-        >>> from torchrl_reset import BoundedTD0Estimator
+        >>> from torchrl_reset.td_bounds import BoundedTD0Estimator
         >>> est = BoundedTD0Estimator(reward_bounds=(-1.0, 1.0), gamma=0.5, value_network=None)
         >>> est.bounds
         (-2.0, 2.0)
@@ -59,7 +59,7 @@ class BoundedTD0Estimator(TD0Estimator):
 def bound_td0_targets(loss, reward_bounds) -> BoundedTD0Estimator:
     """Gives ``loss`` (a DDPG-style loss with a TD(0) estimator, for example after
     ``loss.make_value_estimator(gamma=...)``) a :class:`BoundedTD0Estimator` with the same discount and
-    keys. :class:`~torchrl_reset.accel.DirectDDPGLoss` clips on its fast path as well."""
+    keys."""
     current = loss.value_estimator
     if type(current) is not TD0Estimator:
         raise TypeError(f"bound_td0_targets needs the loss's TD(0) estimator; it has {type(current).__name__}.")

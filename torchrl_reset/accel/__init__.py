@@ -1,7 +1,8 @@
 """The accelerator: everything in torchrl-reset that exists for speed alone, in one place.
 
 The library's plain classes (:class:`~torchrl_reset.EnsembleValueOperator`,
-:class:`~torchrl_reset.RCELoss`, torchrl's ``DDPGLoss`` and ``SoftUpdate``) are the specification:
+:class:`~torchrl_reset.RCELoss`, torchrl's ``DDPGLoss`` and ``SoftUpdate``) are the specification
+(the DDPG agents use torchrl's ``DDPGLoss`` on either path):
 they read like the paper's equations. The classes here compute the same numbers faster, each a
 drop-in subclass or replacement with the same parameters, keys and state dicts:
 
@@ -10,7 +11,6 @@ drop-in subclass or replacement with the same parameters, keys and state dicts:
                                     as one stack without gradients; a shared state part for the
                                     loss's pairs; the success examples' prior part kept
 :class:`FastRCELoss`                one actor pass and one target pass per update; uses the above
-:class:`DirectDDPGLoss`             torchrl's ``DDPGLoss`` without the per-call parameter swaps
 :class:`FusedSoftUpdate`            torchrl's ``SoftUpdate`` as one ``_foreach_lerp_``
 :class:`TensorModule`               one tensor in, one out, without tensordict's output conversion
 :func:`retain_freed_memory`         glibc keeps freed memory (no page faults on big temporaries)
@@ -31,7 +31,6 @@ from torchrl.objectives import DDPGLoss, SoftUpdate
 from ..ensemble import EnsembleValueOperator
 from ..rce_loss import RCELoss
 from .cpu import MATMUL_PRECISIONS, choose_matmul_precision, matmul_products, retain_freed_memory
-from .ddpg import DirectDDPGLoss
 from .ensemble import FastEnsembleValueOperator
 from .modules import FusedSoftUpdate, TensorModule
 from .rce import FastRCELoss
@@ -39,7 +38,6 @@ from .rce import FastRCELoss
 __all__ = [
     "Components",
     "components",
-    "DirectDDPGLoss",
     "FastEnsembleValueOperator",
     "FastRCELoss",
     "FusedSoftUpdate",
@@ -77,5 +75,5 @@ def components(accelerate: bool = True) -> Components:
         ('RCELoss', 'FastRCELoss')
     """
     if accelerate:
-        return Components(FastEnsembleValueOperator, FastRCELoss, DirectDDPGLoss, FusedSoftUpdate, True)
+        return Components(FastEnsembleValueOperator, FastRCELoss, DDPGLoss, FusedSoftUpdate, True)
     return Components(EnsembleValueOperator, RCELoss, DDPGLoss, SoftUpdate, False)
