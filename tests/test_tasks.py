@@ -533,3 +533,17 @@ def test_render_gives_frames_or_a_clear_error_and_the_env_keeps_working():
     env.close()
     with pytest.warns(UserWarning, match="render_mode"):  # no render_mode: gymnasium's convention
         assert make_gym_env("ball_in_cup_catch").render() is None
+
+
+@pytest.mark.parametrize("task", list(TASKS))
+def test_the_recipes_task_config_states_the_envs_horizon_and_threshold(task):
+    """H_f and p_thresh are stated by the env's task spec and by the recipe's task config: they must agree."""
+    from pathlib import Path
+
+    from omegaconf import OmegaConf
+
+    conf = OmegaConf.load(Path(__file__).resolve().parents[1] / "recipes" / "conf" / "task" / f"{task}.yaml")
+    conf = conf.task if "task" in conf else conf  # the UR3 configs are global packages
+    spec = task_spec(task)
+    assert conf.name == task
+    assert (conf.forward_horizon, conf.p_thresh) == (spec.forward_horizon, spec.p_thresh)
