@@ -14,8 +14,8 @@ on the same S runs' networks:
   runs does today, and what each separate process does);
 - **batched**: one :class:`~torchrl_reset.BatchedDualCollector` over a
   :class:`~torchrl_reset_envs.BatchedTaskEnv` of S copies, the S runs' policies and ensembles as
-  one module each (:meth:`~torchrl_reset.run_agents.RunPolicies.module`,
-  :meth:`~torchrl_reset.run_agents.RunEnsembles.module`).
+  one module each (:meth:`~torchrl_reset.many.RunPolicies.module`,
+  :meth:`~torchrl_reset.many.RunEnsembles.module`).
 
 Prints milliseconds per run-step (wall time over executed steps of all runs) and the ratio; writes
 ``benchmarks/results/acting-<date>.json`` and ``.md``.
@@ -39,8 +39,9 @@ sys.path.insert(0, str(ROOT / "recipes"))
 from agents import make_actor  # noqa: E402
 from bench_updates import check_device, describe, machine, synchronizer, write_results  # noqa: E402
 
-from torchrl_reset import BatchedDualCollector, DualCollector, EnsembleValueOperator, ResetTriggerTransform  # noqa: E402
-from torchrl_reset.run_agents import RunEnsembles, RunPolicies  # noqa: E402
+from torchrl_reset import DualCollector, EnsembleValueOperator, ResetTriggerTransform  # noqa: E402
+from torchrl_reset.many import BatchedDualCollector, RowResetTriggerTransform  # noqa: E402
+from torchrl_reset.many import RunEnsembles, RunPolicies  # noqa: E402
 from torchrl_reset_envs import BatchedTaskEnv, make_env  # noqa: E402
 
 TASK, HIDDEN, MEMBERS, PRIOR, P_THRESH, H_F, H_R = "peg_insertion_insert", (400, 300), 5, 3.0, 0.1, 100, 200
@@ -98,7 +99,7 @@ def batched(runs: int, steps: int, warm_up: int, device: str = "cpu") -> float:
     obs_dim, spec = base.observation_spec["observation"].shape[-1], make_env(TASK, device=device).action_spec
     forward, reset, ensembles = networks(runs, obs_dim, spec, device)
     policies = [explore(RunPolicies(group).module(), base.action_spec) for group in (forward, reset)]
-    trigger = ResetTriggerTransform(RunEnsembles(ensembles).module(), P_THRESH)
+    trigger = RowResetTriggerTransform(RunEnsembles(ensembles).module(), P_THRESH)
     collector = BatchedDualCollector(TransformedEnv(base, trigger), *policies, max_forward_steps=H_F, max_reset_steps=H_R)
     return timed(collector, steps * runs, warm_up * runs, device)
 

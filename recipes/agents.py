@@ -14,6 +14,7 @@ from torchrl.modules import OrnsteinUhlenbeckProcessModule, TanhModule
 from torchrl.objectives import SoftUpdate
 
 from torchrl_reset import ResetTriggerTransform, accel
+from torchrl_reset.many import RowResetTriggerTransform
 from torchrl_reset.td_bounds import bound_td0_targets
 
 __all__ = ["speed_components", "make_actor", "with_exploration", "exploration_settings", "make_adam", "Agent", "make_forward_agent", "make_reset_agent", "make_trigger", "lnt_batch", "reset_tau"]
@@ -175,15 +176,18 @@ def reset_tau(cfg: DictConfig) -> float:
     return float(cfg.tau if tau is None else tau)
 
 
-def make_trigger(cfg: DictConfig, reset_agent: Agent, *, model=None, threshold=None) -> ResetTriggerTransform:
+def make_trigger(cfg: DictConfig, reset_agent: Agent, *, model=None, threshold=None,
+                 rows: bool = False) -> ResetTriggerTransform:
     """The reset trigger on ``reset_agent``'s model (or ``model``: a batch's runs as one, with ``threshold``
-    one per row where they differ)."""
+    one per row where they differ). ``rows``: the trigger of an env of N copies each in its own phase
+    (:class:`~torchrl_reset.many.RowResetTriggerTransform`, for ``arms=`` and a batch's batched acting)."""
     model = reset_agent.model if model is None else model
+    trigger = RowResetTriggerTransform if rows else ResetTriggerTransform
     if cfg.algo.name == "ours":
         if threshold is None:
             threshold = float(cfg.task.p_thresh if cfg.algo.threshold is None else cfg.algo.threshold)
-        return ResetTriggerTransform(model, threshold)
-    return ResetTriggerTransform(
+        return trigger(model, threshold)
+    return trigger(
         model, float(cfg.algo.threshold) if threshold is None else threshold, score="value", reduction="min",
         model_out_key="state_action_value", score_key="reset_value",
     )

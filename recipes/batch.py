@@ -2,7 +2,7 @@
 
 S runs (seeds) of one task and algorithm advance in lockstep, one environment step each per
 iteration, and their agents are updated together: one batched update call per agent type serves
-every run whose agent updates at that step (:mod:`torchrl_reset.run_agents`). Everything else is
+every run whose agent updates at that step (:mod:`torchrl_reset.many`). Everything else is
 each run's own, built exactly as for the run alone (:func:`train.build_run`): its environment and
 collector (so its own phase, forward or reset, its own episode counters, trigger decisions, H_f / H_r
 clocks, manual resets and success examples), its replay buffers, its random streams, its records
@@ -16,6 +16,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import random
+import signal
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -29,10 +30,10 @@ from torchrl.envs.utils import ExplorationType, exploration_type
 from agents import reset_tau
 from config_checks import ConfigError, validate
 from learner import NonFiniteLoss
-from run_files import run_folder_lock, stop_on_sigterm
+from run_files import RunInterrupted, run_folder_lock, stop_on_signals
 from torchrl_reset import DualCollector
 from torchrl_reset.accel import matmul_products
-from torchrl_reset.run_agents import RunDDPGUpdate, RunRCEUpdate
+from torchrl_reset.many import RunDDPGUpdate, RunRCEUpdate
 
 __all__ = ["batch_seeds", "batch_runs", "run_configs", "RunRNG", "BatchedUpdates", "train_batch"]
 
@@ -239,7 +240,8 @@ class BatchedUpdates:
 
 
 def train_batch(cfg: DictConfig, runs: list) -> list[dict]:
-    """Trains (or resumes) the runs (seeds, or :func:`batch_runs`'s pairs) together; returns their summaries."""
+    """Trains (or resumes) the runs (seeds, or :func:`batch_runs`'s pairs) together; returns their summaries. A
+    signal that stops the batch (Ctrl-C, SIGTERM) raises :class:`RunInterrupted` once every run is checkpointed."""
     configs = run_configs(cfg, runs)
     with contextlib.ExitStack() as locks:
         for run_cfg in configs:
@@ -357,14 +359,14 @@ def _shared_ou(noises: list):
 
 
 def batched_collector(runs: list, updates: BatchedUpdates, streams: list[RunRNG]):
-    """One :class:`~torchrl_reset.BatchedDualCollector` for the S runs (``speed.batched_acting``): one env of S
+    """One :class:`~torchrl_reset.many.BatchedDualCollector` for the S runs (``speed.batched_acting``): one env of S
     copies, row ``s`` seeded as run ``s``'s env, the runs' policies and trigger ensembles acting as one (the
     batched updates' own parameter stacks), each run's exploration on its row. Each run then collects through
     its copy, loaded from its own collector (fresh, or resumed from its checkpoint)."""
     from agents import make_trigger
     from config_checks import reset_horizon
     from torchrl.envs import TransformedEnv
-    from torchrl_reset import BatchedDualCollector
+    from torchrl_reset.many import BatchedDualCollector
     from torchrl_reset_envs import BatchedTaskEnv
 
     cfg = runs[0].cfg
@@ -372,7 +374,7 @@ def batched_collector(runs: list, updates: BatchedUpdates, streams: list[RunRNG]
                          **(OmegaConf.to_container(cfg.env, resolve=True) if cfg.get("env") else {}))
     thresholds = [float(r.trigger.threshold) for r in runs]
     trigger = make_trigger(cfg, runs[0].reset, model=updates.reset.ensembles.module(),
-                           threshold=thresholds[0] if len(set(thresholds)) == 1 else thresholds)
+                           threshold=thresholds[0] if len(set(thresholds)) == 1 else thresholds, rows=True)
     env = TransformedEnv(env, trigger)
 
     def policy(agent_updates, phase: str):
@@ -386,8 +388,8 @@ def batched_collector(runs: list, updates: BatchedUpdates, streams: list[RunRNG]
         example_buffers=[r.collector.example_buffer for r in runs])
     for s, run in enumerate(runs):
         with streams[s].active():
-            collector.copy(s).load_state_dict(run.collector.state_dict())
-        run.adopt(collector.copy(s))
+            collector.view(s).load_state_dict(run.collector.state_dict())
+        run.adopt(collector.view(s))
     return collector
 
 
@@ -435,9 +437,9 @@ def _train_batch(configs: list[DictConfig]) -> list[dict]:
     timing = BatchTiming(runs, int(configs[0].heat_up))
     # lines 5-15 / 17-22 of each run: its own env step (from its own collector, or its row of the shared one)
     iterations = _per_run_steps(runs, streams) if shared is None else _batched_steps(shared, runs)
-    interrupted = False
+    stopped_by = None  # the signal (SIGINT, SIGTERM) that ends the batch after its current iteration
     try:
-        with stop_on_sigterm() as stop_requested:
+        with stop_on_signals() as stop_requested:
             started = time.perf_counter()
             for stepped in iterations:
                 steady, in_updates = timing.steady(), updates.seconds
@@ -457,12 +459,13 @@ def _train_batch(configs: list[DictConfig]) -> list[dict]:
                     timing.add(now - started, updates.seconds - in_updates, len(stepped))
                 started = now
                 if stop_requested:
-                    interrupted = True
-                    log.warning("SIGTERM at step %d: checkpointing the batch", max(r.collector.frames for r in runs))
+                    stopped_by = stop_requested[0]
+                    log.warning("%s at step %d: checkpointing the batch", signal.Signals(stopped_by).name,
+                                max(r.collector.frames for r in runs))
                     break
-    except KeyboardInterrupt:
-        interrupted = True
-        log.warning("interrupted: checkpointing the batch")
+    except KeyboardInterrupt:  # a second Ctrl-C: the iteration under way was cut short, its state is not saved
+        raise RunInterrupted(signal.SIGINT, [], "stopped at once, without a checkpoint of the iteration under way; "
+                                                "each run's last checkpoint stands") from None
     except NonFiniteLoss as err:
         paths = [str(run.state.save()) for run in runs]  # the update stopped before it changed anything
         raise train.TrainingDiverged(f"non-finite loss ({err}); every run's last good state is checkpointed "
@@ -473,7 +476,11 @@ def _train_batch(configs: list[DictConfig]) -> list[dict]:
     summaries = []
     for s, run in enumerate(runs):
         with streams[s].active():
-            summaries.append(run.finish(interrupted, extra={"batch": timing.row()}))
+            summaries.append(run.finish(stopped_by is not None, extra={"batch": timing.row()}))
     if shared is not None:
         shared.shutdown()
+    if stopped_by is not None:
+        steps = ", ".join(str(summary["steps"]) for summary in summaries)
+        raise RunInterrupted(stopped_by, summaries, f"{signal.Signals(stopped_by).name} stopped the batch at steps "
+                                                    f"{steps}, each run checkpointed there")
     return summaries

@@ -1,6 +1,8 @@
 """The recipe's configuration checks: every configuration that cannot run fails before anything is built."""
 from __future__ import annotations
 
+import difflib
+import functools
 import json
 import os
 from pathlib import Path
@@ -9,13 +11,15 @@ from omegaconf import DictConfig, OmegaConf
 
 from torchrl_reset.accel import MATMUL_PRECISIONS
 from torchrl_reset.ensemble import PRIOR_BIAS_DRAWS
-from run_files import Checkpoints
+from run_files import Checkpoints, no_intact_checkpoint
 from torchrl_reset_envs import TASKS
 
-__all__ = ["ALGOS", "ConfigError", "arm_count", "reset_horizon", "validate", "should_resume", "torch_threads"]
+__all__ = ["ALGOS", "ConfigError", "arm_count", "reset_horizon", "validate", "should_resume", "torch_threads",
+           "recipe_settings", "unknown_settings"]
 
 
 ALGOS = ("ours", "lnt", "lnt_sparse")
+CONF = Path(__file__).resolve().parent / "conf"
 
 
 class ConfigError(ValueError):
@@ -33,7 +37,12 @@ def reset_horizon(cfg: DictConfig) -> int:
 
 def validate(cfg: DictConfig) -> None:
     """Raise :class:`ConfigError` for every configuration that cannot run, before training starts."""
-    problems = []
+    problems = unknown_settings(cfg)
+    run_dir = Path(cfg.run_dir)
+    existing = next((p for p in (run_dir, *run_dir.parents) if p.exists()), None)
+    if existing is not None and not existing.is_dir():
+        what = f"{run_dir} is a file" if existing == run_dir else f"{existing}, in {run_dir}'s path, is a file"
+        problems.append(f"run_dir must name a folder, but {what}; choose another run_dir")
     if cfg.task.name not in TASKS:
         problems.append(f"unknown task {cfg.task.name!r}; known: {', '.join(TASKS)}")
     if cfg.algo.name not in ALGOS:
@@ -119,11 +128,13 @@ def validate(cfg: DictConfig) -> None:
             problems.append("arms runs N simulated copies of a task; a UR3 arm is one env (env.* options are not taken)")
     if problems:
         raise ConfigError("invalid configuration:\n  - " + "\n  - ".join(problems))
-    checkpoints = Checkpoints(Path(cfg.run_dir) / "checkpoints", keep=int(cfg.keep_checkpoints))
-    latest = checkpoints.latest()
+    checkpoints = Checkpoints(run_dir / "checkpoints", keep=int(cfg.keep_checkpoints))
     if cfg.resume not in (True, False, "auto"):
         raise ConfigError(f"resume must be true, false or auto, got {cfg.resume!r}")
     if should_resume(cfg):
+        latest, damaged = checkpoints.survey()
+        if latest is None and damaged:
+            raise ConfigError(no_intact_checkpoint(checkpoints.root, damaged))
         if latest is None:
             raise ConfigError(f"resume=true but {checkpoints.root} holds no complete checkpoint to resume from.")
         meta = json.loads((latest / "meta.json").read_text())
@@ -133,10 +144,10 @@ def validate(cfg: DictConfig) -> None:
                     f"the checkpoint in {latest} is from {key} {meta.get(key)!r}, this run is {key} {value!r}; "
                     "use another run_dir or the matching task and algo."
                 )
-    elif latest is not None:
+    elif checkpoints.folders():
         raise ConfigError(
-            f"{cfg.run_dir} already holds a checkpoint ({latest.name}); pass resume=true to continue it, or "
-            "choose another run_dir."
+            f"{cfg.run_dir} already holds a checkpoint ({checkpoints.folders()[0].name}); pass resume=true to "
+            "continue it, or choose another run_dir."
         )
     threads = cfg.threads
     if threads != "auto" and not (isinstance(threads, int) and threads >= 1):
@@ -145,10 +156,80 @@ def validate(cfg: DictConfig) -> None:
 
 def should_resume(cfg: DictConfig) -> bool:
     """``resume``: true, false, or auto (continue from the run folder's checkpoint when it has one:
-    launching the same grid again continues every run where it stopped)."""
+    launching the same grid again continues every run where it stopped). A checkpoint is what
+    :meth:`Checkpoints.folders` lists, intact or not: resuming takes the newest intact one
+    (:meth:`Checkpoints.latest`), and a folder whose checkpoints are all damaged stops with an error instead
+    of starting over."""
     if cfg.resume == "auto":
-        return Checkpoints(Path(cfg.run_dir) / "checkpoints").latest() is not None
+        return bool(Checkpoints(Path(cfg.run_dir) / "checkpoints").folders())
     return bool(cfg.resume)
+
+
+@functools.lru_cache(maxsize=None)
+def recipe_settings(conf: Path = CONF) -> tuple[frozenset[str], frozenset[str]]:
+    """The settings the recipe defines, as dotted keys: those of ``config.yaml`` and of every option of its
+    groups (``task/``, ``algo/``, ``preset/``), each where Hydra puts it (under the group's name, or where
+    the file's ``# @package`` header says). Also returns the open mappings: an empty mapping in a file
+    (``env: {}``) holds another function's keyword arguments, which that function checks."""
+    keys, open_mappings = set(), set()
+
+    def add(node: dict, prefix: str) -> None:
+        for key, value in node.items():
+            path = f"{prefix}{key}"
+            keys.add(path)
+            if isinstance(value, dict):
+                if not value:
+                    open_mappings.add(path)
+                add(value, f"{path}.")
+
+    root = OmegaConf.to_container(OmegaConf.load(conf / "config.yaml"), resolve=False)
+    for hydra_key in ("defaults", "hydra"):
+        root.pop(hydra_key, None)
+    add(root, "")
+    for group in sorted(p for p in conf.iterdir() if p.is_dir()):
+        for option in sorted(group.glob("*.yaml")):
+            package = _package_header(option) or group.name
+            if package != "_global_":
+                keys.update(".".join(package.split(".")[: i + 1]) for i in range(package.count(".") + 1))
+            add(OmegaConf.to_container(OmegaConf.load(option), resolve=False) or {},
+                "" if package == "_global_" else f"{package}.")
+    return frozenset(keys), frozenset(open_mappings)
+
+
+def _package_header(path: Path) -> str | None:
+    """The ``# @package <name>`` header of a config file's leading comments, or None."""
+    for line in path.read_text().splitlines():
+        if not line.startswith("#"):
+            break
+        if line.lstrip("# ").startswith("@package"):
+            return line.lstrip("# ").split(None, 1)[1].strip()
+    return None
+
+
+def unknown_settings(cfg: DictConfig, conf: Path = CONF) -> list[str]:
+    """A line for each key of ``cfg`` that the recipe does not define (:func:`recipe_settings`), such as the
+    misspelled ``+total_step=1000``: the recipe would never read it. Hydra's own ``hydra.*`` is left alone."""
+    keys, open_mappings = recipe_settings(conf)
+    unknown = []
+
+    def walk(node: dict, prefix: str) -> None:
+        for key, value in node.items():
+            path = f"{prefix}{key}"
+            if not prefix and key == "hydra":
+                continue
+            if path not in keys:
+                unknown.append(path)
+            elif isinstance(value, dict) and path not in open_mappings:
+                walk(value, f"{path}.")
+
+    walk(OmegaConf.to_container(cfg, resolve=False), "")
+    lines = []
+    for path in unknown:
+        close = difflib.get_close_matches(path, sorted(keys), n=1, cutoff=0.6)
+        hint = f"; the closest known key is {close[0]} (set it without a leading +: {close[0]}=...)" if close else ""
+        lines.append(f"unknown key {path}: the recipe's configuration (recipes/conf) does not define it, so "
+                     f"nothing would read it{hint}")
+    return lines
 
 
 def torch_threads(cfg: DictConfig) -> int:

@@ -16,8 +16,8 @@ from agents import Agent, lnt_batch, with_exploration
 from buffers import buffer_keys, sampler_fallbacks
 from config_checks import arm_count, reset_horizon
 from task_envs import UpdateBudget
-from torchrl_reset import BatchedDualCollector, DualCollector
-from torchrl_reset.batched_collector import PooledCollector
+from torchrl_reset import DualCollector
+from torchrl_reset.many import BatchedDualCollector, PooledCollector
 from torchrl_reset.accel import matmul_products
 
 __all__ = ["make_collector", "Learner", "NonFiniteLoss", "update_agent"]

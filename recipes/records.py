@@ -20,7 +20,7 @@ from tqdm import tqdm
 
 from buffers import fallback_counts, restore_fallbacks
 from diagnostics import DIAGNOSTIC_FIELDS, RESET_FIELDS, ResetDistances, TriggerScores, probe_classifier
-from run_files import CsvTable, code_version, processor_name, success_rate_by_quarter
+from run_files import CsvTable, code_version, processor_name, reset_outcomes_by_quarter
 from task_envs import safety_counters
 
 __all__ = ["PROGRESS_FIELDS", "EVAL_FIELDS", "TRIGGER_FIELDS", "RunRecord", "make_loggers"]
@@ -162,6 +162,7 @@ class RunRecord:
         """The paper's Table 1 metrics and what the run ran on, written to ``summary.json``."""
         cfg, collector, history = self.cfg, self.collector, self.history
         c, returns = collector.counters, history["eval_returns"]
+        quarters = reset_outcomes_by_quarter(self.resets.path, collector.frames, c["reset_episodes"])
         summary = {
             "task": cfg.task.name, "algo": cfg.algo.name, "seed": int(cfg.seed),
             # the threshold the trigger used (ours: algo.threshold when set, else the task's p_thresh)
@@ -178,7 +179,8 @@ class RunRecord:
             "baseline_hard_resets": (c["forward_steps"] + c["triggered_resets"]) // int(cfg.task.forward_horizon),
             "forward_share": collector.forward_share,
             "reset_success_rate": collector.reset_success_rate,
-            **success_rate_by_quarter(self.progress.path),
+            **_quarter_rates(quarters),
+            "reset_episodes_by_quarter": quarters,
             "final_eval_return": returns[-1] if returns else None,
             "evaluations": len(returns),
             **{k: c[k] for k in ("triggered_resets", "requested_resets", "successful_resets", "reset_episodes")},
@@ -198,6 +200,15 @@ class RunRecord:
             if callable(finish):  # wandb: close the run so its files are complete
                 finish()
         return summary
+
+
+def _quarter_rates(quarters: dict) -> dict:
+    """The share of the reset episodes that got back, in the first and in the last quarter (None where none ended
+    or the counts are unknown)."""
+    def rate(q):
+        return q["successful_resets"] / q["reset_episodes"] if q["reset_episodes"] else None
+
+    return {f"reset_success_rate_{name}_quarter": rate(quarters[name]) for name in ("first", "last")}
 
 
 def _isnan(value) -> bool:

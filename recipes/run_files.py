@@ -2,10 +2,13 @@
 from __future__ import annotations
 
 import csv
+import hashlib
 import json
+import logging
 import os
 import platform
 import random
+import re
 import shutil
 import signal
 import subprocess
@@ -17,8 +20,14 @@ import numpy as np
 import torch
 from omegaconf import OmegaConf
 
-__all__ = ["RunFolderBusy", "run_folder_lock", "code_version", "processor_name", "Checkpoints", "TrainingState", "stop_on_sigterm",
-           "success_rate_by_quarter", "CsvTable"]
+__all__ = ["RunFolderBusy", "run_folder_lock", "code_version", "processor_name", "Checkpoints", "CheckpointDamaged",
+           "checkpoint_problems", "no_intact_checkpoint", "TrainingState", "RunInterrupted", "stop_on_signals",
+           "reset_outcomes_by_quarter", "CsvTable"]
+
+log = logging.getLogger("torchrl_reset.train")
+
+MANIFEST = "manifest.json"  # a checkpoint's list of its files, written last
+_STEP_FOLDER = re.compile(r"step_(\d+)")
 
 
 def code_version() -> dict:
@@ -54,58 +63,170 @@ def processor_name(cpuinfo: Path = Path("/proc/cpuinfo")) -> str:
     return f"{name}, {widest}" if widest else name
 
 
+class CheckpointDamaged(RuntimeError):
+    """No intact checkpoint to resume from; the message names each damaged one and what is wrong with it."""
+
+
 class Checkpoints:
     """Complete checkpoints in ``root/step_<frames>/``, the newest named by ``root/latest``.
 
-    A checkpoint is written into a temporary folder, which is renamed into place once complete; then
-    ``latest`` is replaced atomically. A crash while checkpointing leaves the previous checkpoint and
-    ``latest`` untouched.
+    A checkpoint is written into a temporary folder: the training state, ``meta.json``, then
+    ``manifest.json`` (every file's relative path, size and sha256), written last. The folder is then
+    renamed into place and ``latest`` replaced atomically, so a crash while checkpointing leaves the
+    previous checkpoint and ``latest`` untouched. A checkpoint is intact when its files match its
+    manifest; a damaged one (a file missing, truncated or changed) is passed over for the newest intact
+    one before it. Checkpoints written before manifests existed (``meta.json``, no manifest) count as
+    intact, unverified. A checkpoint folder is never written again once in place: saving the state a
+    folder already holds (no step since it was saved or loaded) keeps that folder.
     """
 
     def __init__(self, root: Path, keep: int = 2):
         self.root = Path(root)
         self.keep = max(1, int(keep))
+        self.current: str | None = None  # the folder that holds this process's state now (saved or loaded)
+
+    def folders(self) -> list[Path]:
+        """Every checkpoint a resume could start from, intact or not, newest first: the ``step_*`` folders up
+        to the one ``latest`` names (all of them when ``latest`` is missing or unreadable)."""
+        steps = {_step(path): path for path in self.root.glob("step_*") if _step(path) is not None and path.is_dir()}
+        newest = self._pointer()
+        return [steps[s] for s in sorted(steps, reverse=True) if newest is None or s <= newest]
+
+    def survey(self) -> tuple[Path | None, list[tuple[Path, list[str]]]]:
+        """The newest intact checkpoint (None when there is none), and the damaged ones newer than it, each
+        with what is wrong with it."""
+        damaged = []
+        for folder in self.folders():
+            problems = checkpoint_problems(folder)
+            if not problems:
+                return folder, damaged
+            damaged.append((folder, problems))
+        return None, damaged
 
     def latest(self) -> Path | None:
-        pointer = self.root / "latest"
-        if not pointer.exists():
-            return None
-        path = self.root / pointer.read_text().strip()
-        return path if (path / "meta.json").exists() else None
+        """The newest intact checkpoint, or None."""
+        return self.survey()[0]
 
     def save(self, frames: int, write: Callable[[Path], None], meta: dict) -> Path:
         self.root.mkdir(parents=True, exist_ok=True)
+        final = self.root / f"step_{frames:010d}"
+        if final.name == self.current and final.is_dir():
+            # no step since this state was saved or loaded: the folder holds it already (and may be read now)
+            self._point_to(final)
+            self._prune(frames)
+            return final
+        for stale in self.root.glob(".tmp-*"):  # left by a crash while checkpointing (one process per run folder)
+            shutil.rmtree(stale, ignore_errors=True)
         tmp = self.root / f".tmp-step_{frames:010d}-{os.getpid()}"
-        if tmp.exists():
-            shutil.rmtree(tmp)
         tmp.mkdir()
         write(tmp)
-        (tmp / "meta.json").write_text(json.dumps(meta, indent=2))  # written last: marks the folder complete
+        (tmp / "meta.json").write_text(json.dumps({**meta, "manifest": MANIFEST}, indent=2))
+        _write_manifest(tmp)  # last: it lists everything above
         _fsync_tree(tmp)
-        final = self.root / f"step_{frames:010d}"
-        if final.exists():
-            shutil.rmtree(final)
+        replaced = None
+        if final.exists():  # this step's checkpoint from an earlier attempt: moved aside, then removed
+            replaced = self.root / f".tmp-replaced-{final.name}-{os.getpid()}"
+            os.rename(final, replaced)
         os.rename(tmp, final)
+        self._point_to(final)
+        if replaced is not None:
+            shutil.rmtree(replaced, ignore_errors=True)
+        self._prune(frames)
+        self.current = final.name
+        return final
+
+    def _pointer(self) -> int | None:
+        try:
+            return _step(Path(self.root / "latest").read_text().strip())
+        except OSError:
+            return None
+
+    def _point_to(self, folder: Path) -> None:
+        if self._pointer() == _step(folder):
+            return
         pointer_tmp = self.root / f".latest-{os.getpid()}"
         with open(pointer_tmp, "w") as f:
-            f.write(final.name)
+            f.write(folder.name)
             f.flush()
             os.fsync(f.fileno())
         os.replace(pointer_tmp, self.root / "latest")
         _fsync_dir(self.root)
-        for old in sorted(self.root.glob("step_*"))[: -self.keep]:
-            shutil.rmtree(old, ignore_errors=True)
-        return final
+
+    def _prune(self, frames: int) -> None:
+        """Keeps the newest ``keep`` checkpoints up to step ``frames``; later ones belong to a continuation the
+        run no longer has (a damaged checkpoint it resumed before)."""
+        steps = sorted((s, path) for path in self.root.glob("step_*") if (s := _step(path)) is not None)
+        for s, path in steps:
+            if s > frames:
+                shutil.rmtree(path, ignore_errors=True)
+        for _, path in [(s, path) for s, path in steps if s <= frames][: -self.keep]:
+            shutil.rmtree(path, ignore_errors=True)
+
+
+def _step(path) -> int | None:
+    """The step of a checkpoint folder's name (``step_0000000300``: 300), or None for another name."""
+    match = _STEP_FOLDER.fullmatch(Path(path).name)
+    return int(match[1]) if match else None
+
+
+def _sha256(path: Path) -> str:
+    digest = hashlib.sha256()
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            digest.update(chunk)
+    return digest.hexdigest()
+
+
+def _write_manifest(folder: Path) -> None:
+    files = {}
+    for path in sorted(p for p in folder.rglob("*") if p.is_file()):
+        files[path.relative_to(folder).as_posix()] = {"size": path.stat().st_size, "sha256": _sha256(path)}
+    (folder / MANIFEST).write_text(json.dumps({"files": files}, indent=1))
+
+
+def checkpoint_problems(folder: Path) -> list[str]:
+    """What is wrong with a checkpoint folder, file by file: [] when every file its manifest lists is there
+    with that size and sha256. A checkpoint written before manifests (none, and a ``meta.json`` that does not
+    name one) is only checked for a readable ``meta.json``."""
+    folder = Path(folder)
+    if not (folder / MANIFEST).exists():
+        try:
+            meta = json.loads((folder / "meta.json").read_text())
+        except FileNotFoundError:
+            return ["meta.json is missing"]
+        except (OSError, ValueError) as err:
+            return [f"meta.json is unreadable ({err})"]
+        return [f"{MANIFEST} is missing"] if isinstance(meta, dict) and meta.get("manifest") else []
+    try:
+        files = json.loads((folder / MANIFEST).read_text())["files"]
+        listed = [(name, int(entry["size"]), str(entry["sha256"])) for name, entry in files.items()]
+    except (OSError, ValueError, KeyError, TypeError, AttributeError) as err:
+        return [f"{MANIFEST} is unreadable ({err!r})"]
+    problems = []
+    for name, size, sha256 in listed:
+        path = folder / name
+        try:
+            actual = path.stat().st_size
+        except OSError:
+            problems.append(f"{name} is missing")
+            continue
+        if actual != size:
+            problems.append(f"{name} has {actual} bytes, the manifest lists {size}")
+        elif _sha256(path) != sha256:
+            problems.append(f"{name} differs from the manifest's sha256 (changed after it was written)")
+    return problems
 
 
 class TrainingState:
     """Everything a run needs to go on exactly where it stopped: both agents (losses with their target
     copies, optimizers), the collector (its episode, counters and success examples), both replay
-    buffers, the run's history and every random stream."""
+    buffers, the run's history and every random stream, the evaluation env's included (its next
+    evaluation starts from the start state the run that never stopped would draw)."""
 
-    def __init__(self, checkpoints: Checkpoints, cfg, forward, reset, collector, forward_rb, reset_rb) -> None:
+    def __init__(self, checkpoints: Checkpoints, cfg, forward, reset, collector, forward_rb, reset_rb,
+                 eval_env=None) -> None:
         self.checkpoints, self.cfg = checkpoints, cfg
-        self.forward, self.reset, self.collector = forward, reset, collector
+        self.forward, self.reset, self.collector, self.eval_env = forward, reset, collector, eval_env
         self.buffers = {"forward_buffer": forward_rb, "reset_buffer": reset_rb}
         self.history: dict = {}
         self.before_save = None  # called first by save(): a batch writes the run's optimizer state back here
@@ -129,6 +250,7 @@ class TrainingState:
                 "collector": self.collector.state_dict(),
                 "history": self.history,
                 "rng": {"torch": torch.get_rng_state(), "numpy": np.random.get_state(), "python": random.getstate()},
+                "eval_env": _simulator_state(self.eval_env),
             },
             folder / "state.pt",
         )
@@ -137,8 +259,18 @@ class TrainingState:
                 rb.dumps(folder / name)
 
     def load(self) -> Path:
-        """Loads the latest checkpoint into the agents, collector and buffers; sets ``history``."""
-        folder = self.checkpoints.latest()
+        """Loads the newest intact checkpoint into the agents, collector and buffers; sets ``history``. Each
+        damaged checkpoint passed over is named with what is wrong with it; none intact raises
+        :class:`CheckpointDamaged`. Nothing is written into the checkpoint folder."""
+        folder, damaged = self.checkpoints.survey()
+        for bad, problems in damaged:
+            then = f"resuming from {folder.name}" if folder is not None else "no intact checkpoint before it"
+            log.warning("checkpoint %s is damaged (%s); %s", bad, "; ".join(problems), then)
+        if folder is None:
+            raise CheckpointDamaged(no_intact_checkpoint(self.checkpoints.root, damaged))
+        if not (folder / MANIFEST).exists():
+            log.warning("checkpoint %s has no %s (written before checkpoints had one): it cannot be verified, "
+                        "loading it as it is", folder, MANIFEST)
         state = torch.load(folder / "state.pt", weights_only=False)
         self.forward.loss.load_state_dict(state["forward_loss"])
         self.reset.loss.load_state_dict(state["reset_loss"])
@@ -152,7 +284,31 @@ class TrainingState:
         torch.set_rng_state(state["rng"]["torch"])
         np.random.set_state(state["rng"]["numpy"])
         random.setstate(state["rng"]["python"])
+        if state.get("eval_env") is not None:  # absent from checkpoints written before it was kept
+            _simulator(self.eval_env).set_simulator_state(state["eval_env"])
+        self.checkpoints.current = folder.name
         return folder
+
+
+def _simulator(env):
+    """The innermost env (or wrapper) of ``env`` with ``get_simulator_state`` / ``set_simulator_state``, or None."""
+    while env is not None:
+        if callable(getattr(env, "get_simulator_state", None)) and callable(getattr(env, "set_simulator_state", None)):
+            return env
+        env = getattr(env, "base_env", None)
+    return None
+
+
+def _simulator_state(env):
+    simulator = _simulator(env)
+    return None if simulator is None else simulator.get_simulator_state()
+
+
+def no_intact_checkpoint(root: Path, damaged: list[tuple[Path, list[str]]]) -> str:
+    """The message for a run folder whose checkpoints are all damaged: each one and what is wrong with it."""
+    listed = "\n  - ".join(f"{folder.name}: {'; '.join(problems)}" for folder, problems in damaged)
+    return (f"no intact checkpoint in {root} to resume from:\n  - {listed}\nRestore the damaged files, or move the "
+            "checkpoints away and start the run again without resume.")
 
 
 def _own(state: dict) -> dict:
@@ -161,20 +317,59 @@ def _own(state: dict) -> dict:
     return {k: v.clone() if isinstance(v, torch.Tensor) else v for k, v in state.items()}
 
 
+class RunInterrupted(Exception):
+    """A signal stopped the run before ``total_steps``. ``summaries``: the runs' summaries, each run checkpointed
+    at the step it stopped; empty when a second Ctrl-C cut the step under way short (the last checkpoint
+    stands). ``exit_code``: the shell's convention, 128 + the signal's number (130 for SIGINT, 143 for SIGTERM)."""
+
+    def __init__(self, signum: int, summaries: list[dict], message: str) -> None:
+        super().__init__(message)
+        self.signum, self.summaries = int(signum), summaries
+        self.exit_code = 128 + self.signum
+
+
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+
 @contextmanager
-def stop_on_sigterm():
-    """Yields a list that gets an entry when SIGTERM arrives (a cluster's pre-emption, ``kill``), so that
-    the loop can stop after its current step with a checkpoint; off the main thread, signals are left alone."""
+def stop_on_signals():
+    """Yields a list that gets the signal's number when SIGINT (Ctrl-C) or SIGTERM (a cluster's pre-emption,
+    ``kill``) arrives, so that the loop can stop after its current step with a checkpoint, which then resumes
+    exactly. A second Ctrl-C stops at once (KeyboardInterrupt): the step under way is lost, the last
+    checkpoint stands. Off the main thread, signals are left alone."""
     requested: list[int] = []
+
+    def on_signal(signum, frame):
+        name = signal.Signals(signum).name
+        if signum == signal.SIGINT and signal.SIGINT in requested:
+            _say(f"{name} again: stopping at once; the step under way is not checkpointed (resume continues from "
+                 "the last checkpoint)")
+            raise KeyboardInterrupt
+        if not requested:
+            again = " (Ctrl-C again stops at once, without it)" if signum == signal.SIGINT else ""
+            _say(f"{name}: stopping after the current step with a checkpoint{again}")
+        requested.append(signum)
+
+    previous = {}
     try:
-        previous = signal.signal(signal.SIGTERM, lambda signum, frame: requested.append(signum))
+        for signum in STOP_SIGNALS:
+            previous[signum] = signal.signal(signum, on_signal)
     except ValueError:  # not the main thread
-        previous = None
+        pass
     try:
         yield requested
     finally:
-        if previous is not None:
-            signal.signal(signal.SIGTERM, previous)
+        for signum, handler in previous.items():
+            signal.signal(signum, handler)
+
+
+def _say(message: str) -> None:
+    """A line on stderr from a signal handler: written to the file descriptor directly, since the handler may
+    run while the code it interrupted is writing to ``sys.stderr``'s buffer (a progress bar, a log line)."""
+    try:
+        os.write(2, f"\n{message}\n".encode())
+    except OSError:
+        pass
 
 
 def _fsync_dir(path: Path) -> None:
@@ -193,28 +388,22 @@ def _fsync_tree(root: Path) -> None:
         _fsync_dir(Path(dirpath))
 
 
-def success_rate_by_quarter(progress: Path) -> dict:
-    """The reset success rate within the first and the last quarter of a run's steps, from ``progress.csv``
-    (the cumulative counters at the log rows): whether the reset agent got better."""
-    out = {"reset_success_rate_first_quarter": None, "reset_success_rate_last_quarter": None}
-    if not Path(progress).exists():
-        return out
-    with open(progress, newline="") as f:
-        rows = [(int(float(r["frames"])), int(r["successful_resets"]), int(r["manual_resets"])) for r in csv.DictReader(f)]
-    if len(rows) < 4:
-        return out
-    total = rows[-1][0]
-
-    def at(frames: int) -> tuple[int, int]:
-        before = [r for r in rows if r[0] <= frames]
-        return (before[-1][1], before[-1][2]) if before else (0, 0)
-
-    def rate(start: tuple[int, int], end: tuple[int, int]):
-        ended = (end[0] - start[0]) + (end[1] - start[1])
-        return (end[0] - start[0]) / ended if ended else None
-
-    out["reset_success_rate_first_quarter"] = rate((0, 0), at(total // 4))
-    out["reset_success_rate_last_quarter"] = rate(at(total - total // 4), at(total))
+def reset_outcomes_by_quarter(resets: Path, steps: int, reset_episodes: int) -> dict:
+    """The reset episodes that ended in the first and in the last quarter of a run's ``steps`` (steps 0 to
+    steps // 4, and the last steps // 4), and how many of them got back to the start state, counted from
+    ``resets.csv`` (one row per reset episode, at the step it ended). A quarter's counts are None when the
+    table does not hold the run's ``reset_episodes`` (a run begun before it was written)."""
+    rows = []
+    if Path(resets).exists():
+        with open(resets, newline="") as f:
+            rows = [(int(float(r["frames"])), r["outcome"]) for r in csv.DictReader(f)]
+    complete = len(rows) == int(reset_episodes)
+    quarter = int(steps) // 4
+    out = {}
+    for name, (start, end) in (("first", (0, quarter)), ("last", (int(steps) - quarter, int(steps)))):
+        ended = [outcome for frame, outcome in rows if start < frame <= end]
+        out[name] = {"from_step": start, "to_step": end, "reset_episodes": len(ended) if complete else None,
+                     "successful_resets": ended.count("success") if complete else None}
     return out
 
 

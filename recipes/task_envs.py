@@ -46,7 +46,7 @@ def make_task_env(cfg: DictConfig, reset_agent: Agent, *, for_eval: bool = False
     (``render_mode``, ``width``...). With ``arms`` (training only) one env of N copies of the task,
     the trigger watching every copy; evaluation runs on one copy."""
     arms = None if for_eval else arm_count(cfg)
-    trigger = make_trigger(cfg, reset_agent)
+    trigger = make_trigger(cfg, reset_agent, rows=arms is not None)
     if arms is not None:  # one env of N copies (seeded seed, seed + 1, ... by the collector), the trigger over all
         return TransformedEnv(BatchedTaskEnv(cfg.task.name, arms, device=cfg.device, **options), trigger), trigger
     env = make_env(cfg.task.name, device=cfg.device, **env_kwargs(cfg, for_eval=for_eval), **options)

@@ -21,8 +21,11 @@ run folders into the paper's table and figures.
 from __future__ import annotations
 
 import logging
-import math
+import os
 import random
+import re
+import shlex
+import signal
 import sys
 from dataclasses import dataclass
 from pathlib import Path
@@ -40,10 +43,12 @@ from buffers import make_buffers  # noqa: E402
 from config_checks import ConfigError, arm_count, reset_horizon, should_resume, torch_threads, validate  # noqa: E402
 from learner import Learner, NonFiniteLoss, make_collector  # noqa: E402
 from records import RunRecord  # noqa: E402
-from run_files import Checkpoints, RunFolderBusy, TrainingState, run_folder_lock, stop_on_sigterm  # noqa: E402
+from run_files import (Checkpoints, CheckpointDamaged, RunFolderBusy, RunInterrupted, TrainingState,  # noqa: E402
+                       run_folder_lock, stop_on_signals)
 from task_envs import EVAL_SEED_OFFSET, evaluate, make_task_env, realtime_env, task_dimensions  # noqa: E402
 
-from torchrl_reset import DualCollector, split_phases  # noqa: E402
+from torchrl_reset import DualCollector  # noqa: E402
+from torchrl_reset.many import split_phases  # noqa: E402
 from torchrl_reset.accel import choose_matmul_precision, retain_freed_memory  # noqa: E402
 from torchrl_reset_envs.ur3_backends import RobotFault  # noqa: E402
 
@@ -59,7 +64,8 @@ class RobotStopped(RuntimeError):
 
 
 def train(cfg: DictConfig) -> dict:
-    """Run (or resume) one training run; returns the summary also written to ``summary.json``."""
+    """Run (or resume) one training run; returns the summary also written to ``summary.json``. A signal that
+    stops it (Ctrl-C, SIGTERM) raises :class:`RunInterrupted` once it is checkpointed, with the summary."""
     run_dir = Path(cfg.run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
     with run_folder_lock(run_dir):
@@ -136,7 +142,7 @@ class Run:
             self.checkpoint()
 
     def adopt(self, collector) -> None:
-        """Collects with ``collector`` from now on (a batch's :meth:`~torchrl_reset.BatchedDualCollector.copy`,
+        """Collects with ``collector`` from now on (a batch's :meth:`~torchrl_reset.many.BatchedDualCollector.view`,
         loaded from this run's own collector): every piece that reads the collector reads it."""
         own = self.collector
         for holder in (self, self.state, self.record, self.learner):
@@ -177,7 +183,7 @@ def build_run(cfg: DictConfig, matmul_precision: str) -> Run:
     forward_rb, reset_rb = make_buffers(cfg)
 
     state = TrainingState(Checkpoints(run_dir / "checkpoints", keep=int(cfg.keep_checkpoints)), cfg,
-                          forward, reset, collector, forward_rb, reset_rb)
+                          forward, reset, collector, forward_rb, reset_rb, eval_env)
     record = RunRecord(cfg, run_dir, collector, trigger)
     if should_resume(cfg):
         folder = state.load()
@@ -199,9 +205,9 @@ def _train(cfg: DictConfig) -> dict:
     collector, arms = run.collector, arm_count(cfg)
 
     # Algorithm 1, lines 5-28: each batch is one action of a forward or a reset episode
-    interrupted = False
+    stopped_by = None  # the signal (SIGINT, SIGTERM) that ends the run after its current step
     try:
-        with stop_on_sigterm() as stop_requested:
+        with stop_on_signals() as stop_requested:
             for batch in collector:
                 batch = batch.to(cfg.device)
                 # one step; with N arms, the steps of one iteration (up to one per arm), by phase
@@ -211,12 +217,12 @@ def _train(cfg: DictConfig) -> dict:
                     run.record.step(part, phase)
                 run.after_frames(collector.frames - batch.numel())
                 if stop_requested:
-                    interrupted = True
-                    log.warning("SIGTERM at step %d: checkpointing", collector.frames)
+                    stopped_by = stop_requested[0]
+                    log.warning("%s at step %d: checkpointing", signal.Signals(stopped_by).name, collector.frames)
                     break
-    except KeyboardInterrupt:
-        interrupted = True
-        log.warning("interrupted at step %d: checkpointing", collector.frames)
+    except KeyboardInterrupt:  # a second Ctrl-C: the step under way was cut short, its state is not saved
+        raise RunInterrupted(signal.SIGINT, [], f"stopped at once at step {collector.frames}, without a checkpoint "
+                                                "there; the last checkpoint stands") from None
     except NonFiniteLoss as err:
         path = run.state.save()  # the update stopped before it changed anything: the last good state
         raise TrainingDiverged(
@@ -228,24 +234,72 @@ def _train(cfg: DictConfig) -> dict:
         raise RobotStopped(f"{err} The run is checkpointed in {path}; resume=true continues it.") from err
     finally:
         run.record.close()
-    return run.finish(interrupted, extra=None if arms is None else {"arms": arms})
+    summary = run.finish(stopped_by is not None, extra=None if arms is None else {"arms": arms})
+    if stopped_by is not None:
+        raise RunInterrupted(stopped_by, [summary], f"{signal.Signals(stopped_by).name} stopped the run at step "
+                                                    f"{collector.frames}, checkpointed there")
+    return summary
+
+
+# Hydra makes its run folder and writes its own files there (.hydra/, its log) before the recipe sees the
+# configuration. A single run's Hydra folder is therefore the working directory, with those files off (unless
+# the command line sets them): a refused configuration (an unknown key, run_dir naming a file) leaves nothing
+# behind, and the recipe writes train.log into the run folder itself. A -m grid keeps Hydra's job folders.
+SINGLE_RUN_HYDRA = (("hydra.run.dir", "hydra.run.dir=."), ("hydra.output_subdir", "hydra.output_subdir=null"),
+                    ("hydra.job_logging", "~hydra.job_logging.handlers.file"),
+                    ("hydra.job_logging", "hydra.job_logging.root.handlers=[console]"))
+LOG_FORMAT = "[%(asctime)s][%(name)s][%(levelname)s] - %(message)s"  # Hydra's
+
+
+def main() -> None:
+    """The command line: ``python recipes/train.py [overrides]`` (see the module's docstring)."""
+    args = sys.argv[1:]
+    if not any(a in ("-m", "--multirun") or a.startswith("hydra.mode=") for a in args):
+        given = {a.lstrip("+~").split("=")[0].replace("/", ".") for a in args}
+        extra = [override for key, override in SINGLE_RUN_HYDRA if not any(g.startswith(key) for g in given)]
+        # beside the command line's overrides: Hydra reads them as one run of arguments among its options
+        at = max((i + 1 for i, a in enumerate(args) if "=" in a and not a.startswith("-")), default=len(args))
+        sys.argv = [sys.argv[0], *args[:at], *extra, *args[at:]]
+    run_command()
 
 
 @hydra.main(version_base="1.3", config_path="conf", config_name="config")
-def main(cfg: DictConfig) -> None:
+def run_command(cfg: DictConfig) -> None:
+    """Runs the configuration (one run, or a ``seeds=`` batch) and prints its summary. Exit status: 0 for a
+    finished run; 2 for a configuration refused before anything was written; 3 for a diverged run, 4 for a
+    robot fault (both checkpointed); 128 + the signal's number for a run a signal stopped (130 for Ctrl-C,
+    143 for SIGTERM), which then prints the command that continues it."""
+    runs, configs = None, [cfg]
     try:
         runs = batch_runs(cfg)
+        if runs is None:
+            validate(cfg)  # refused before the run folder exists (train checks again under the folder's lock)
+        else:
+            configs = run_configs(cfg, runs, check=False)  # train_batch validates them before making the folders
+        _log_to_run_folders(configs)
         summaries = [train(cfg)] if runs is None else train_batch(cfg, runs)
-    except (ConfigError, RunFolderBusy, TrainingDiverged, RobotStopped) as err:
+    except RunInterrupted as stop:
+        _print_results(cfg, runs, stop.summaries)
+        print(f"{stop}. To continue:\n  {continue_command(configs)}", file=sys.stderr)
+        sys.exit(stop.exit_code)
+    except KeyboardInterrupt:  # outside the training loop: while the run was being built or checkpointed
+        print(f"interrupted before the run could stop cleanly; its last checkpoint stands. To continue:\n  "
+              f"{continue_command(configs)}", file=sys.stderr)
+        sys.exit(128 + signal.SIGINT)
+    except (ConfigError, CheckpointDamaged, RunFolderBusy, TrainingDiverged, RobotStopped) as err:
         print(f"error: {err}", file=sys.stderr)
-        sys.exit({ConfigError: 2, RunFolderBusy: 2, TrainingDiverged: 3}.get(type(err), 4))
+        sys.exit({ConfigError: 2, CheckpointDamaged: 2, RunFolderBusy: 2, TrainingDiverged: 3}.get(type(err), 4))
+    _print_results(cfg, runs, summaries)
+
+
+def _print_results(cfg: DictConfig, runs, summaries: list[dict]) -> None:
     if runs is None:
-        summary = summaries[0]
-        width = max(map(len, summary))
-        for key, value in summary.items():
-            print(f"{key:<{width}}  {value:.4g}" if isinstance(value, float) else f"{key:<{width}}  {value}")
-        print(_in_words(summary))
-        print(f"results in {cfg.run_dir}")
+        for summary in summaries:
+            width = max(map(len, summary))
+            for key, value in summary.items():
+                print(f"{key:<{width}}  {value:.4g}" if isinstance(value, float) else f"{key:<{width}}  {value}")
+            print(_in_words(summary))
+            print(f"results in {cfg.run_dir}")
         return
     key = cfg.get("vary")
     for summary, run_cfg, (seed, value) in zip(summaries, run_configs(cfg, runs, check=False), runs):
@@ -253,15 +307,49 @@ def main(cfg: DictConfig) -> None:
         print(f"seed {seed}{setting}: {_in_words(summary)} Results in {run_cfg.run_dir}")
 
 
-def _in_words(summary: dict) -> str:
-    """The run's effect in one sentence: resets saved against an episodic agent, and the success trend."""
-    def pct(value):
-        return "n/a" if value is None or (isinstance(value, float) and math.isnan(value)) else f"{100 * value:.0f}%"
+def _log_to_run_folders(configs: list[DictConfig]) -> None:
+    """The log's lines also go to ``train.log`` in each run folder, which the file gets with its first line."""
+    for run_cfg in configs:
+        handler = logging.FileHandler(Path(run_cfg.run_dir) / "train.log", delay=True)
+        handler.setFormatter(logging.Formatter(LOG_FORMAT))
+        logging.getLogger().addHandler(handler)
 
+
+def continue_command(configs: list[DictConfig]) -> str:
+    """The command that continues the run(s): the command line as given, with ``resume=true`` when every run
+    folder holds a checkpoint (``resume=auto`` otherwise, which also starts a run that has none); a command
+    with ``resume=auto`` is given back as it is. In a -m grid: this job's overrides."""
+    from hydra.core.hydra_config import HydraConfig
+    from hydra.types import RunMode
+
+    argv = list(sys.orig_argv)
+    if HydraConfig.initialized() and HydraConfig.get().mode == RunMode.MULTIRUN:
+        argv = [Path(sys.executable).name, os.path.relpath(__file__), *HydraConfig.get().overrides.task]
+    if any(re.fullmatch(r"\+{0,2}resume=auto", a) for a in argv):
+        return shlex.join(argv)
+    every = all(Checkpoints(Path(c.run_dir) / "checkpoints").folders() for c in configs)
+    return shlex.join([*(a for a in argv if not re.fullmatch(r"\+{0,2}resume=.*", a)),
+                       "resume=true" if every else "resume=auto"])
+
+
+def _in_words(summary: dict) -> str:
+    """The run's effect in one sentence: resets saved against an episodic agent, and how many reset episodes
+    got back to the start in the first and in the last quarter of the run."""
+    quarters = summary["reset_episodes_by_quarter"]
     return (f"{summary['manual_resets']} manual resets where an episodic agent would have needed "
-            f"{summary['episodic_resets']} ({summary['resets_saved']} saved); reset success rate "
-            f"{pct(summary['reset_success_rate_first_quarter'])} in the first quarter of the run, "
-            f"{pct(summary['reset_success_rate_last_quarter'])} in the last.")
+            f"{summary['episodic_resets']} ({summary['resets_saved']} saved); "
+            f"{_quarter_in_words(quarters['first'], 'the first quarter of the run')}; "
+            f"{_quarter_in_words(quarters['last'], 'the last quarter')}.")
+
+
+def _quarter_in_words(quarter: dict, where: str) -> str:
+    span = f"steps {quarter['from_step']}-{quarter['to_step']}"
+    ended, succeeded = quarter["reset_episodes"], quarter["successful_resets"]
+    if ended is None:
+        return f"the reset episodes of {where} ({span}) are not all in resets.csv"
+    if not ended:
+        return f"no reset episode ended in {where} ({span})"
+    return f"{succeeded} of {ended} reset episodes succeeded in {where} ({span}, {100 * succeeded / ended:.0f}%)"
 
 
 if __name__ == "__main__":

@@ -75,7 +75,8 @@ def batch_for(kind: str, gen: torch.Generator) -> TensorDict:
 @pytest.mark.parametrize("kind", ["rce", "ddpg", "lnt"])
 def test_accelerator_and_reference_agree_in_losses_gradients_and_parameters_over_updates(kind):
     fast, plain = build(accel.components(True), kind), build(accel.components(False), kind)
-    assert type(fast[0]) is not type(plain[0])
+    # the RCE loss and every ensemble differ between the paths; the DDPG agents use torchrl's DDPGLoss on both
+    assert type(fast[0].value_network if kind != "rce" else fast[0]) is not type(plain[0].value_network if kind != "rce" else plain[0])
     names = ("loss_actor", "loss_classifier") if kind == "rce" else ("loss_actor", "loss_value")
     for (name, a), b in zip(fast[0].named_parameters(), plain[0].parameters()):
         assert torch.equal(a, b), name  # the same start

@@ -14,7 +14,8 @@ import torch
 from tensordict.nn import TensorDictModule
 from torchrl.envs import TransformedEnv
 
-from torchrl_reset import BatchedDualCollector, DualCollector, InitialStateBuffer, ResetTriggerTransform, split_phases
+from torchrl_reset import DualCollector, InitialStateBuffer
+from torchrl_reset.many import BatchedDualCollector, RowResetTriggerTransform, split_phases
 from torchrl_reset_envs import BatchedTaskEnv, make_env
 
 TASK = "peg_insertion_insert"
@@ -47,7 +48,7 @@ def trigger(smoothing=0.0):
         return torch.cat([z - 0.5, z + 0.3], -1)
 
     model = TensorDictModule(logits, in_keys=["observation", "action"], out_keys=["logits"])
-    return ResetTriggerTransform(model, 0.3, smoothing=smoothing)
+    return RowResetTriggerTransform(model, 0.3, smoothing=smoothing)
 
 
 class Noisy:
@@ -137,7 +138,7 @@ def test_each_copy_is_the_single_collector(start_joints, smoothing, noisy):
         for key in KEYS:
             assert torch.equal(traces[i].get(key), trace.get(key)), (i, key)
         assert torch.equal(collector.example_buffers[i].states()["observation"], alone.example_buffer.states()["observation"])
-        copy = collector.copy(i)
+        copy = collector.view(i)
         assert copy.counters == alone.counters and copy.frames == alone.frames
         assert events(copy) == events(alone)  # outcomes, steps, frames, the stopped actions' scores, states
     total = collector.metrics()
@@ -208,15 +209,15 @@ def test_a_copy_continues_a_single_collector_and_the_other_way_round(start_joint
         states.append((alone.state_dict(), alone.forward_policy.generators[0].get_state()))
     collector = batched(start_joints, steps, smoothing, noisy=True)
     for i, (state, gen) in enumerate(states):
-        collector.copy(i).load_state_dict(state)
+        collector.view(i).load_state_dict(state)
         collector.forward_policy.generators[i].set_state(gen)
-    assert collector.copy(1).frames == cut and collector.frames == cut * len(SEEDS)
+    assert collector.view(1).frames == cut and collector.frames == cut * len(SEEDS)
     it = iter(collector)
     middle = per_copy([next(it) for _ in range(60)])
     back = []
     for i in range(len(SEEDS)):  # and back: each copy's state continues in a single collector
         alone = single_collector(i, start_joints, steps, smoothing, noisy=True)
-        alone.load_state_dict(collector.copy(i).state_dict())
+        alone.load_state_dict(collector.view(i).state_dict())
         alone.forward_policy.generators[0].set_state(collector.forward_policy.generators[i].get_state())
         back.append(torch.cat([batch.select(*KEYS).clone() for batch in alone]))
         assert alone.counters == whole[i][0].counters
@@ -225,9 +226,9 @@ def test_a_copy_continues_a_single_collector_and_the_other_way_round(start_joint
         for key in KEYS:
             assert torch.equal(again.get(key), trace.get(key)), (i, key)
     with pytest.raises(RuntimeError, match="before the batch's first iteration"):
-        collector.copy(0).load_state_dict(states[0][0])
+        collector.view(0).load_state_dict(states[0][0])
     with pytest.raises(ValueError, match="shared"):
-        batched(start_joints, 10, shared_examples=True).copy(0)
+        batched(start_joints, 10, shared_examples=True).view(0)
 
 
 def batched_metrics(q0, steps):
@@ -252,7 +253,7 @@ def test_bad_inputs(start_joints):
 
 def test_trigger_rows_off_never_fire_and_restart_their_smoothing():
     model = TensorDictModule(lambda obs, act: obs[..., :2] * 0 - 10.0, in_keys=["observation", "action"], out_keys=["logits"])
-    t = ResetTriggerTransform(model, 0.3, smoothing=0.5)
+    t = RowResetTriggerTransform(model, 0.3, smoothing=0.5)
     td = __import__("tensordict").TensorDict({"observation": torch.zeros(3, 2), "action": torch.zeros(3, 1)}, batch_size=[3])
     t.set_enabled(torch.tensor([True, False, True]))
     fired = t.score_step(td.clone())
@@ -262,7 +263,7 @@ def test_trigger_rows_off_never_fire_and_restart_their_smoothing():
     assert np.isnan(scored["success_probability"][1].item())
     # row 0 restarts: its smoothing state is dropped, row 2 keeps its own
     t.set_enabled(torch.tensor([True, False, True]), restart=torch.tensor([True, False, False]))
-    assert np.isnan(t._smoothed[0].item()) and not np.isnan(t._smoothed[2].item())
+    assert np.isnan(t.smoothed[0].item()) and not np.isnan(t.smoothed[2].item())
     with pytest.raises(TypeError, match="boolean mask"):
         t.set_enabled(torch.ones(3))
 

@@ -149,7 +149,7 @@ def test_sigterm_ends_the_run_after_its_step_with_a_checkpoint_and_a_summary(tmp
         time.sleep(0.2)
     assert proc.poll() is None, proc.stderr.read().decode()[-2000:]
     proc.send_signal(signal.SIGTERM)
-    assert proc.wait(timeout=120) == 0
+    assert proc.wait(timeout=120) == 143  # the shell's 128 + SIGTERM: the run did not finish
     summary = json.loads((run_dir / "summary.json").read_text())
     assert not summary["finished"] and 150 <= summary["steps"] < 100000
     meta = json.loads((run_dir / "checkpoints" / (run_dir / "checkpoints" / "latest").read_text() / "meta.json").read_text())
@@ -409,7 +409,7 @@ def test_options_beside_the_paper_a_pessimistic_start_and_the_reset_agents_own_t
 def test_lnt_option_beside_the_paper_targets_clipped_to_the_rewards_bounds(tmp_path, accelerate):
     from torchrl.objectives.value import TD0Estimator
 
-    from torchrl_reset import BoundedTD0Estimator
+    from torchrl_reset.td_bounds import BoundedTD0Estimator
 
     spec = train_utils.make_env("peg_insertion_insert").action_spec
     paper = train_utils.make_reset_agent(config(tmp_path, "algo=lnt", f"speed.accelerate={accelerate}"), 14, spec)
@@ -522,3 +522,100 @@ def test_cliff_walker_explores_with_the_releases_smaller_noise(tmp_path):
         assert exploration_settings(cfg) | {"sigma": sigma, "dt": dt, "theta": 0.15} == exploration_settings(cfg)
         noise = with_exploration(train_utils.make_actor(14, spec, [16, 16]), spec, cfg)[-1].ou
         assert (noise.sigma, noise.dt, noise.theta) == (sigma, dt, 0.15)
+
+
+# ------------------------------------------------- interrupts, exit codes, keys the recipe does not define
+def test_ctrl_c_ends_the_run_after_its_step_and_the_printed_command_resumes_it_exactly(tmp_path):
+    import shlex
+
+    common = ["task=cliff_cheetah", "algo=ours", "total_steps=200"]
+    train.train(config(tmp_path / "whole", *common))
+    run_dir = tmp_path / "run"
+    args = [sys.executable, str(RECIPES / "train.py"), *TINY, *common, f"run_dir={run_dir}"]
+    proc = subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env={**os.environ, "RL_WARNINGS": "0"})
+    progress = run_dir / "progress.csv"
+    deadline = time.time() + 300
+    while time.time() < deadline and proc.poll() is None:
+        if progress.exists() and len(rows(progress)) >= 2:  # past step 100, mid-way
+            break
+        time.sleep(0.05)
+    assert proc.poll() is None, proc.stderr.read().decode()[-2000:]
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=300)
+    err = err.decode()
+    assert proc.returncode == 130, err[-2000:]  # the shell's 128 + SIGINT
+    summary = json.loads((run_dir / "summary.json").read_text())
+    stopped = summary["steps"]
+    assert 100 <= stopped < 200 and not summary["finished"]
+    latest = run_dir / "checkpoints" / (run_dir / "checkpoints" / "latest").read_text()
+    assert json.loads((latest / "meta.json").read_text())["frames"] == stopped  # checkpointed after the step
+    assert f"SIGINT stopped the run at step {stopped}" in err
+    command = err.strip().splitlines()[-1].strip()
+    assert command == shlex.join([*args, "resume=true"])
+
+    resumed = subprocess.run(shlex.split(command), capture_output=True, text=True, timeout=600,
+                             env={**os.environ, "RL_WARNINGS": "0"})
+    assert resumed.returncode == 0, resumed.stderr[-2000:]
+    for table in ("progress.csv", "eval.csv", "resets.csv"):
+        whole = [{k: v for k, v in r.items() if k != "steps_per_second"} for r in rows(tmp_path / "whole" / table)]
+        split = [{k: v for k, v in r.items() if k != "steps_per_second"} for r in rows(run_dir / table)]
+        assert whole == split, table  # losses, reset episodes' lengths and end distances, row by row
+    assert len(rows(run_dir / "progress.csv")) == 4
+
+
+def test_a_batch_stopped_by_sigterm_exits_143_and_prints_the_command_that_continues_it(tmp_path):
+    import shlex
+
+    args = [sys.executable, str(RECIPES / "train.py"), *TINY, "task=peg_insertion_remove", "algo=ours", "seeds=[3,4]",
+            "exploration.restart=episode", "update_order=joint", "total_steps=100000", f"sweep_dir={tmp_path}"]
+    proc = subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env={**os.environ, "RL_WARNINGS": "0"})
+    folders = [tmp_path / f"peg_insertion_remove/ours/seed{seed}" for seed in (3, 4)]
+    deadline = time.time() + 300
+    while time.time() < deadline and proc.poll() is None:
+        if all((f / "progress.csv").exists() and rows(f / "progress.csv") for f in folders):
+            break
+        time.sleep(0.1)
+    assert proc.poll() is None, proc.stderr.read().decode()[-2000:]
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=300)
+    err = err.decode()
+    assert proc.returncode == 143, err[-2000:]  # the shell's 128 + SIGTERM
+    for folder in folders:
+        summary = json.loads((folder / "summary.json").read_text())
+        latest = folder / "checkpoints" / (folder / "checkpoints" / "latest").read_text()
+        assert not summary["finished"] and json.loads((latest / "meta.json").read_text())["frames"] == summary["steps"]
+    assert err.strip().splitlines()[-1].strip() == shlex.join([*args, "resume=true"])
+
+
+@pytest.mark.parametrize("override, message", [
+    ("+total_step=1000", "unknown key total_step: .*the closest known key is total_steps"),
+    ("run_dir=FILE", "run_dir must name a folder, but .*file is a file"),
+    ("task.p_thresh=1.5", r"task.p_thresh must lie in \(0, 1\)"),
+], ids=["misspelled-key", "run-dir-a-file", "bad-value"])
+def test_a_refused_command_exits_2_with_the_reason_and_leaves_nothing_behind(tmp_path, override, message):
+    import re
+
+    (tmp_path / "file").write_text("kept")
+    run_dir = str(tmp_path / "file") if override == "run_dir=FILE" else str(tmp_path / "run")
+    args = [sys.executable, str(RECIPES / "train.py"), "task=cliff_cheetah", f"run_dir={run_dir}"]
+    args += [] if override == "run_dir=FILE" else [override]
+    done = subprocess.run(args, capture_output=True, text=True, timeout=300, cwd=tmp_path,
+                          env={**os.environ, "RL_WARNINGS": "0"})
+    assert done.returncode == 2, done.stderr[-2000:]
+    assert re.search(message, done.stderr) and "Traceback" not in done.stderr
+    # no run folder, and none of Hydra's files (.hydra/, train.log) in the working directory either
+    assert [p.name for p in tmp_path.iterdir()] == ["file"] and (tmp_path / "file").read_text() == "kept"
+
+
+def test_keys_the_recipe_does_not_define_are_refused_and_those_its_groups_add_are_not(tmp_path):
+    from config_checks import validate
+
+    with pytest.raises(ConfigError, match="unknown key total_step: .*closest known key is total_steps"):
+        validate(config(tmp_path, "+total_step=1000"))
+    with pytest.raises(ConfigError, match="unknown key forward.batchsize: .*closest known key is forward.batch_size"):
+        validate(config(tmp_path, "+forward.batchsize=8"))
+    with pytest.raises(ConfigError, match="unknown key zzz: .*would read it$"):  # nothing close: no suggestion
+        validate(config(tmp_path, "+zzz=1"))
+    validate(config(tmp_path, "task=peg_insertion_insert", "+task.exploration.sigma=0.1"))  # cliff_walker's key
+    validate(config(tmp_path, "task=ur3_peg", "+env.acceleration=1.0"))  # env holds the env's own arguments
+    validate(config(tmp_path, "preset=quick", "algo=lnt", "algo.reward_bounds=[0,1]"))

@@ -21,7 +21,7 @@ sys.path.insert(0, str(RECIPES))
 
 from agents import lnt_batch, make_forward_agent, make_reset_agent  # noqa: E402
 
-from torchrl_reset.run_agents import RunDDPGUpdate, RunRCEUpdate, bind_runs  # noqa: E402
+from torchrl_reset.many import RunDDPGUpdate, RunRCEUpdate, bind_runs  # noqa: E402
 
 S, B, OBS, ACT = 3, 12, 5, 2
 
@@ -173,7 +173,7 @@ def test_policies_of_another_layout_are_refused():
     net = torch.nn.Sequential(torch.nn.Linear(OBS, 8), torch.nn.Tanh(), torch.nn.Linear(8, ACT))
     actor = TensorDictSequential(TensorDictModule(net, ["observation"], ["action_preactivation"]),
                                  TanhModule(["action_preactivation"], ["action"], spec=spec()))
-    from torchrl_reset.run_agents import RunPolicies
+    from torchrl_reset.many import RunPolicies
     with pytest.raises(ValueError, match="ReLU MLP"):
         RunPolicies([actor, actor])
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from torchrl_reset.runs import RunMaskedAdam, RunMaskedSoftUpdate
+from torchrl_reset.many import RunMaskedAdam, RunMaskedSoftUpdate
 
 S = 4
 
@@ -90,42 +90,3 @@ def test_bad_masks_and_parameters_are_refused(mask):
         RunMaskedAdam([torch.nn.Parameter(torch.zeros(S + 1, 2))], runs=S)
     with pytest.raises(ValueError, match="tau"):
         RunMaskedSoftUpdate([p.detach()], [p.detach().clone()], runs=S, tau=0.0)
-
-
-def test_run_logits_give_each_run_what_its_own_ensemble_gives_on_its_own_inputs():
-    from torchrl_reset import EnsembleValueOperator
-    from torchrl_reset.runs import run_logits
-
-    runs, k = 3, 4
-    both = EnsembleValueOperator(5, 2, num_members=runs * k, hidden_sizes=(16, 8), dtype=torch.float64)
-    gen = torch.Generator().manual_seed(3)
-    obs, act = torch.randn(runs, 7, 5, generator=gen, dtype=torch.float64), torch.rand(runs, 7, 2, generator=gen, dtype=torch.float64)
-    out = run_logits(both, obs, act, runs=runs)
-    assert out.shape == (runs, 7, k)
-    for s in range(runs):
-        alone = EnsembleValueOperator(5, 2, num_members=k, hidden_sizes=(16, 8), dtype=torch.float64)
-        alone.load_state_dict({name: value[s * k:(s + 1) * k] for name, value in both.state_dict().items()})
-        torch.testing.assert_close(out[s], alone.logits(obs[s], act[s]), rtol=1e-12, atol=1e-12)
-    with pytest.raises(ValueError, match="do not split"):
-        run_logits(both, obs, act, runs=5)
-
-
-def test_run_mlp_computes_each_runs_own_network_and_round_trips():
-    from torch import nn
-
-    from torchrl_reset.runs import RunMLP
-
-    torch.manual_seed(4)
-    nets = [nn.Sequential(nn.Linear(5, 16), nn.ReLU(), nn.Linear(16, 8), nn.ReLU(), nn.Linear(8, 2)).double()
-            for _ in range(S)]
-    batched = RunMLP.from_modules(nets).double()
-    x = torch.randn(S, 3, 6, 5, dtype=torch.float64)
-    out = batched(x)
-    assert out.shape == (S, 3, 6, 2)
-    for s in range(S):
-        torch.testing.assert_close(out[s], nets[s](x[s]), rtol=1e-12, atol=1e-12)
-        torch.testing.assert_close(batched.run(s).double()(x[s]), nets[s](x[s]), rtol=1e-12, atol=1e-12)
-    fresh = RunMLP(400, 300, (), runs=2)  # Xavier-uniform bounds, zero biases, like the paper's layers
-    assert float(fresh.weights[0].detach().abs().max()) <= (6 / 700) ** 0.5 and not fresh.biases[0].any()
-    with pytest.raises(ValueError, match="run dimension"):
-        batched(torch.randn(S + 1, 5, dtype=torch.float64))

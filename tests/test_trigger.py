@@ -128,7 +128,7 @@ def test_smoothing_is_an_exponential_moving_average_restarted_on_reset():
         assert td["next", "success_probability"].item() == pytest.approx(smoothed, rel=1e-5)
         td = step_mdp(td)
     env.reset()
-    assert trigger._smoothed is None
+    assert trigger.smoothed is None
 
 
 def test_disabled_trigger_never_fires_and_evaluates_nothing():
@@ -168,3 +168,25 @@ def test_a_model_input_missing_from_the_step_gets_a_clear_error():
     td = env.reset()
     with pytest.raises(KeyError, match="action"):
         env.transform._inv_call(td.exclude("action"))
+
+
+def test_the_paper_trigger_takes_one_threshold_and_a_bool_and_points_to_the_row_trigger():
+    """Per-row state (masks, a threshold per row) belongs to torchrl_reset.many.RowResetTriggerTransform."""
+    with pytest.raises(TypeError, match="RowResetTriggerTransform"):
+        ResetTriggerTransform(constant_ensemble([0.0]), [0.1, 0.2])
+    trigger = ResetTriggerTransform(constant_ensemble([0.0]), 0.1)
+    with pytest.raises(TypeError, match="RowResetTriggerTransform"):
+        trigger.set_enabled(torch.tensor([True, False]))
+
+
+def test_a_batched_collector_refuses_a_trigger_that_cannot_work_row_by_row():
+    from torchrl_reset.many import BatchedDualCollector, RowResetTriggerTransform
+    from torchrl_reset_envs import BatchedTaskEnv
+
+    still = TensorDictModule(lambda obs: torch.zeros(*obs.shape[:-1], 7), in_keys=["observation"], out_keys=["action"])
+    ensemble = EnsembleValueOperator(14, 7, num_members=2, hidden_sizes=(8, 8))
+    plain = TransformedEnv(BatchedTaskEnv("peg_insertion_insert", seeds=[0, 1]), ResetTriggerTransform(ensemble, 0.1))
+    with pytest.raises(TypeError, match="RowResetTriggerTransform"):
+        BatchedDualCollector(plain, still, still, max_forward_steps=4)
+    rows = TransformedEnv(BatchedTaskEnv("peg_insertion_insert", seeds=[0, 1]), RowResetTriggerTransform(ensemble, 0.1))
+    BatchedDualCollector(rows, still, still, max_forward_steps=4)

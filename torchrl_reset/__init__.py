@@ -2,23 +2,21 @@
 
 Implements Kim et al., "Automating Reinforcement Learning with Example-based Resets" (RA-L 2022).
 """
-from .batched_collector import BatchedDualCollector, split_phases
 from .collector import DualCollector, find_trigger_transforms
 from .ensemble import (EnsembleValueOperator, prior_bias_bound, reduce_members, success_classifier, success_probability,
                        with_prior)
 from .example_buffer import InitialStateBuffer
 from .nstep import EpisodeWindowSampler, NStepStateTransform
 from .rce_loss import RCELoss, actor_loss, classifier_loss, label_weight, rce_label, shared_label
-from .td_bounds import BoundedTD0Estimator, bound_td0_targets
 from .trigger import ResetTriggerTransform
 from . import accel  # the accelerator: the same numbers, faster (torchrl_reset.accel)
+from . import many  # many runs in one process, N copies of a task: an option (torchrl_reset.many)
 
 __version__ = "0.1.0"
 
 __all__ = [
     "accel",
-    "BatchedDualCollector",
-    "BoundedTD0Estimator",
+    "many",
     "DualCollector",
     "EnsembleValueOperator",
     "EpisodeWindowSampler",
@@ -33,10 +31,8 @@ __all__ = [
     "rce_label",
     "shared_label",
     "with_prior",
-    "bound_td0_targets",
     "find_trigger_transforms",
     "reduce_members",
-    "split_phases",
     "success_classifier",
     "success_probability",
 ]

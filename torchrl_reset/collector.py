@@ -608,7 +608,7 @@ class DualCollector(BaseCollector):
             td=None if self._td is None else self._td.to_dict(),
             env_state=None if self._state_owner is None or self._td is None else self._state_owner.get_simulator_state(),
             example_buffer=self.example_buffer.state_dict(),
-            trigger_smoothing=[t._smoothed for t in self.triggers],
+            trigger_smoothing=[t.smoothed for t in self.triggers],
             exploration={PHASE_NAMES[p]: {k: v.clone() for k, v in state.items()} for p, state in self._exploration.items()},
             events=[{**event, "state": event["state"].to_dict()} for event in self._events],
             rng_state=torch.get_rng_state(),
@@ -638,7 +638,7 @@ class DualCollector(BaseCollector):
             self._td = TensorDict.from_dict(td, batch_size=[])
             for trigger, smoothed in zip(self.triggers, state_dict.get("trigger_smoothing", [])):
                 trigger.set_enabled(self._phase == FORWARD)
-                trigger._smoothed = smoothed
+                trigger.smoothed = smoothed
         else:
             warnings.warn("no saved env state to restore: continuing from env.reset().", stacklevel=2)
             self._traj_id = int(state_dict["traj_id"])

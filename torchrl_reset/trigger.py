@@ -48,9 +48,7 @@ class ResetTriggerTransform(Transform):
     Args:
         model (TensorDictModuleBase): reads the observation and action, writes per-member outputs
             ``[*batch, K]`` (``[*batch]`` is read as K = 1), e.g. :class:`~torchrl_reset.EnsembleValueOperator`.
-        threshold (float, or a 1-D sequence of floats): the trigger fires when the score is strictly below
-            it; a sequence gives each row of a batched env its own threshold (runs of a ``p_thresh`` sweep
-            in one batch).
+        threshold (float): the trigger fires when the score is strictly below it.
 
     Keyword Args:
         score (str or callable): ``"success_probability"`` (default), ``"value"``, or a callable
@@ -68,10 +66,10 @@ class ResetTriggerTransform(Transform):
 
     Attributes:
         enabled (bool): when ``False`` the model is not evaluated and nothing triggers; the
-            collector turns it off during reset episodes. On a batched env whose copies are in
-            different phases (:class:`~torchrl_reset.BatchedDualCollector`), :meth:`set_enabled`
-            takes a mask of the batch instead: only its rows can trigger, and ``enabled`` says
-            whether any row is on.
+            collector turns it off during reset episodes. (A batched env whose copies are in
+            different phases needs a trigger per row: :class:`torchrl_reset.many.RowResetTriggerTransform`.)
+        smoothed (Tensor or None): the smoothing's state, the last smoothed score (None: it restarts
+            at the next score); a collector saves and restores it for an exact resume.
 
     Examples:
         >>> import torch
@@ -109,20 +107,7 @@ class ResetTriggerTransform(Transform):
             raise ValueError(f"score must be one of {SCORES} or a callable, got {score!r}.")
         if isinstance(reduction, str) and reduction not in MEMBER_REDUCTIONS:
             raise ValueError(f"reduction must be one of {MEMBER_REDUCTIONS} or a callable, got {reduction!r}.")
-        if isinstance(threshold, (torch.Tensor, list, tuple)):  # one per row of a batched env
-            threshold = torch.as_tensor(threshold, dtype=torch.float32).detach().clone()
-            if threshold.dim() != 1 or not threshold.numel():
-                raise ValueError(f"a threshold per row is a 1-D sequence, got shape {tuple(threshold.shape)}.")
-            values = threshold.tolist()
-        else:
-            threshold = float(threshold)
-            values = [threshold]
-        if score == "success_probability" and not all(0.0 < v < 1.0 for v in values):
-            raise ValueError(
-                f"threshold is a success probability (p_thresh) and must lie in (0, 1), got {threshold!r}."
-            )
-        if not all(math.isfinite(v) for v in values):
-            raise ValueError(f"threshold must be finite, got {threshold!r}.")
+        threshold = self._check_threshold(threshold, score)
         smoothing = float(smoothing)
         if not (0.0 <= smoothing < 1.0):
             raise ValueError(f"smoothing must lie in [0, 1), got {smoothing!r}.")
@@ -141,36 +126,29 @@ class ResetTriggerTransform(Transform):
         self.done_key = done_key
         self.truncated_key = truncated_key
         self.enabled = True
-        self._rows: torch.Tensor | None = None  # the enabled rows of a batched env, or None: all or nothing
-        self._smoothed: torch.Tensor | None = None
+        self.smoothed: torch.Tensor | None = None
 
-    def set_enabled(self, enabled: bool | torch.Tensor, *, restart: torch.Tensor | None = None) -> None:
-        """Turns the trigger on or off; (re-)enabling restarts the smoothing.
+    @staticmethod
+    def _check_threshold(threshold, score) -> float:
+        if isinstance(threshold, (torch.Tensor, list, tuple)):
+            raise TypeError("threshold is one number; a threshold per row of a batched env is "
+                            "torchrl_reset.many.RowResetTriggerTransform's.")
+        threshold = float(threshold)
+        if score == "success_probability" and not 0.0 < threshold < 1.0:
+            raise ValueError(
+                f"threshold is a success probability (p_thresh) and must lie in (0, 1), got {threshold!r}."
+            )
+        if not math.isfinite(threshold):
+            raise ValueError(f"threshold must be finite, got {threshold!r}.")
+        return threshold
 
-        ``enabled`` may be a boolean tensor of the env's batch shape: rows where it is False are
-        not triggered (their score reads NaN, as a disabled trigger's), and a row turned on restarts
-        its own smoothing, as do the rows of ``restart`` (a new episode in a row that stays on); the
-        other rows keep theirs."""
-        if isinstance(enabled, torch.Tensor) and enabled.dtype == torch.bool:
-            rows = enabled.detach().clone()
-            if self._smoothed is not None and self._rows is not None and self._smoothed.shape == rows.shape:
-                keep = rows & self._rows if restart is None else rows & self._rows & ~restart.reshape(rows.shape)
-                self._smoothed = torch.where(keep, self._smoothed, torch.full_like(self._smoothed, float("nan")))
-            else:
-                self._smoothed = None
-            self._rows = rows
-            self.enabled = bool(rows.any())
-            return
+    def set_enabled(self, enabled: bool) -> None:
+        """Turns the trigger on or off; (re-)enabling restarts the smoothing."""
         if isinstance(enabled, torch.Tensor):
-            raise TypeError(f"set_enabled takes a bool or a boolean mask of the batch, got a {enabled.dtype} tensor.")
+            raise TypeError("set_enabled takes a bool; a mask of a batched env's rows is "
+                            "torchrl_reset.many.RowResetTriggerTransform's.")
         self.enabled = bool(enabled)
-        self._rows = None
-        self._smoothed = None
-
-    @property
-    def enabled_rows(self) -> torch.Tensor | None:
-        """The mask last given to :meth:`set_enabled`, or None when the trigger is on or off as a whole."""
-        return self._rows
+        self.smoothed = None
 
     def evaluate(self, tensordict: TensorDictBase) -> torch.Tensor:
         """The reduced score of the (observation, action) pairs in ``tensordict``, shape ``batch_size``."""
@@ -204,70 +182,17 @@ class ResetTriggerTransform(Transform):
         :class:`~torchrl_reset.DualCollector` calls it on the action drawn after the H_f-th step
         (Algorithm 1 scores that action before it checks the horizon)."""
         score = self.evaluate(tensordict)
-        rows = self._rows
-        if rows is not None:
-            rows = rows.to(score.device)  # a mask made on the CPU (the batched collector's numpy masks)
-        if rows is not None and rows.shape != score.shape:
-            raise ValueError(f"set_enabled was given a mask of shape {tuple(rows.shape)}; the env's batch is "
-                             f"{tuple(score.shape)}.")
         if self.smoothing > 0:
-            if self._smoothed is not None and self._smoothed.shape == score.shape:
-                previous = self._smoothed
-                smoothed = self.smoothing * previous + (1.0 - self.smoothing) * score
-                score = smoothed if rows is None else torch.where(previous.isnan(), score, smoothed)
-            self._smoothed = score if rows is None else torch.where(rows, score, torch.full_like(score, float("nan")))
+            if self.smoothed is not None and self.smoothed.shape == score.shape:
+                score = self.smoothing * self.smoothed + (1.0 - self.smoothing) * score
+            self.smoothed = score
         trigger = self._below(score)
-        if rows is not None:  # a row that is off never triggers and reads as off
-            trigger = trigger & rows
-            score = torch.where(rows, score, torch.full_like(score, float("nan")))
         tensordict.set(self.score_key, score.unsqueeze(-1))
         tensordict.set(self.trigger_key, trigger.unsqueeze(-1))
         return trigger
 
     def _below(self, score: torch.Tensor) -> torch.Tensor:
-        threshold = self.threshold
-        if isinstance(threshold, torch.Tensor):
-            if threshold.numel() != score.numel():
-                raise ValueError(f"{threshold.numel()} thresholds (one per row) for scores of shape {tuple(score.shape)}.")
-            threshold = threshold.to(score.device).reshape(score.shape)
-        return score < threshold
-
-    def score_rows(self, tensordict: TensorDictBase, rows: torch.Tensor) -> torch.Tensor:
-        """:meth:`score_step` for the rows of the boolean mask ``rows`` of a batched env only (the flag is
-        False elsewhere); the other rows' smoothing and the enabled rows are left as they were.
-
-        :class:`~torchrl_reset.BatchedDualCollector` calls it on the actions drawn after some copies'
-        H_f-th step while the other copies' episodes go on."""
-        saved_rows, saved = self._rows, self._smoothed
-        self._rows = rows.detach().clone()
-        try:
-            flag = self.score_step(tensordict)
-        finally:
-            new, self._rows = self._smoothed, saved_rows
-            if saved is not None and new is not None and saved.shape == new.shape:
-                self._smoothed = torch.where(rows.reshape(new.shape), new, saved)
-            else:
-                self._smoothed = saved
-        return flag
-
-    def row_smoothing(self, row: int) -> torch.Tensor | None:
-        """Row ``row``'s smoothed score (a 0-dim tensor, what an unbatched env's trigger holds), or None
-        when that row's smoothing restarts at its next score."""
-        if self._smoothed is None or self._rows is None or not bool(self._rows.reshape(-1)[row]):
-            return None
-        value = self._smoothed.reshape(-1)[row]
-        return None if bool(value.isnan()) else value.clone()
-
-    def restore_row(self, row: int, smoothed: torch.Tensor | None, rows: int) -> None:
-        """Sets row ``row`` (of a batch of ``rows``) to continue from ``smoothed`` (:meth:`row_smoothing`
-        of a batch, or an unbatched trigger's state); None: its smoothing restarts."""
-        if self._rows is None or self._rows.numel() != rows:
-            self._rows = torch.zeros(rows, dtype=torch.bool)
-        if self._smoothed is None or self._smoothed.numel() != rows:
-            self._smoothed = torch.full((rows,), float("nan"))
-        self._rows[row] = smoothed is not None
-        self._smoothed[row] = float("nan") if smoothed is None else float(smoothed.reshape(-1)[0])
-        self.enabled = bool(self._rows.any())
+        return score < self.threshold
 
     def _inv_call(self, tensordict: TensorDictBase) -> TensorDictBase:
         if not self.enabled:
@@ -302,14 +227,7 @@ class ResetTriggerTransform(Transform):
         return next_tensordict
 
     def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase) -> TensorDictBase:
-        partial = None if tensordict is None else tensordict.get("_reset", None)
-        if (partial is not None and self._rows is not None and self._smoothed is not None
-                and partial.numel() == self._smoothed.numel()):
-            # a partial reset of a batched env: only the rows reset restart their smoothing
-            self._smoothed = torch.where(partial.reshape(self._smoothed.shape),
-                                         torch.full_like(self._smoothed, float("nan")), self._smoothed)
-        else:
-            self._smoothed = None
+        self.smoothed = None
         shape = (*tensordict_reset.batch_size, 1)
         tensordict_reset.set(self.score_key, torch.full(shape, float("nan"), device=tensordict_reset.device))
         tensordict_reset.set(self.trigger_key, torch.zeros(shape, dtype=torch.bool, device=tensordict_reset.device))

@@ -6,8 +6,8 @@ checkpoints work on each run as before. :func:`bind_runs` then moves the S runs'
 stacked tensor ``[S, *shape]`` and makes every run's tensor a view of its slice: the modules keep
 their identity, their values are the stacked tensor's. An update of ``RunDDPGUpdate`` or
 ``RunRCEUpdate`` computes the losses of the runs that acted in one pass of batched products (run
-``s`` sees only its own parameters and its own sample), takes one :class:`~torchrl_reset.runs.RunMaskedAdam`
-step and one :class:`~torchrl_reset.runs.RunMaskedSoftUpdate` for those runs, and leaves every other
+``s`` sees only its own parameters and its own sample), takes one :class:`~torchrl_reset.many.RunMaskedAdam`
+step and one :class:`~torchrl_reset.many.RunMaskedSoftUpdate` for those runs, and leaves every other
 run's parameters, targets and optimizer state exactly as they were.
 
 The losses are the single-run losses, per run: :class:`~torchrl.objectives.DDPGLoss` (TD(0) target,
@@ -27,10 +27,10 @@ from tensordict.nn import TensorDictModule
 from torch import nn
 from torchrl.modules import TanhModule
 
-from .accel.ensemble import members_head as _head, members_trunk as _trunk
-from .ensemble import EnsembleValueOperator, with_prior
-from .rce_loss import actor_loss, classifier_loss, label_weight, shared_label
-from .runs import RunMaskedAdam, RunMaskedSoftUpdate
+from ..accel.ensemble import members_head as _head, members_trunk as _trunk
+from ..ensemble import EnsembleValueOperator, with_prior
+from ..rce_loss import actor_loss, classifier_loss, label_weight, shared_label
+from .optim import RunMaskedAdam, RunMaskedSoftUpdate
 
 __all__ = ["bind_runs", "RunPolicies", "RunEnsembles", "RunDDPGUpdate", "RunRCEUpdate"]
 

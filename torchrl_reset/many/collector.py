@@ -12,12 +12,13 @@ from torchrl.collectors import BaseCollector
 from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type, step_mdp
 
-from ._validation import check_int
-from .collector import (COUNTERS, FORWARD, PHASE_NAMES, RESET, _state_owner, check_state_keys, set_up_loop,
+from .._validation import check_int
+from ..collector import (COUNTERS, FORWARD, PHASE_NAMES, RESET, _state_owner, check_state_keys, set_up_loop,
                         stopped_scores)
-from .example_buffer import InitialStateBuffer
+from ..example_buffer import InitialStateBuffer
+from .trigger import RowResetTriggerTransform
 
-__all__ = ["BatchedDualCollector", "CollectorCopy", "PooledCollector", "split_phases"]
+__all__ = ["BatchedDualCollector", "CopyView", "PooledCollector", "split_phases"]
 
 
 def split_phases(batch: TensorDictBase) -> dict[str, TensorDictBase]:
@@ -68,7 +69,7 @@ class BatchedDualCollector(BaseCollector):
     ``("collector", "phase")``, ``("collector", "env_ids")`` (its copy) and ``("collector", "traj_ids")``
     (for independent runs counted per copy, as each copy's own :class:`~torchrl_reset.DualCollector`
     counts them; with a shared example buffer unique over all copies): :func:`split_phases` sorts
-    them for the two agents' buffers. :meth:`copy` gives one copy's view with a single collector's
+    them for the two agents' buffers. :meth:`view` gives one copy's live view with a single collector's
     interface (counters, frames, example buffer, events, and its state in
     :class:`~torchrl_reset.DualCollector`'s ``state_dict`` format), for the code that keeps one run's
     records and checkpoints.
@@ -78,7 +79,7 @@ class BatchedDualCollector(BaseCollector):
     - **independent runs** (``shared_examples=False``, the default): copy ``i`` is run ``i``, with its
       own example buffer (``example_buffers[i]``) and metrics (:meth:`env_metrics`); the policies
       and the trigger's model compute row ``i`` with run ``i``'s networks (for example
-      :class:`~torchrl_reset.run_agents.RunPolicies` and ``RunEnsembles``), and ``max_frames_per_env``
+      :class:`~torchrl_reset.many.RunPolicies` and ``RunEnsembles``), and ``max_frames_per_env``
       stops each run at its own budget;
     - **one agent pair over N environments** (``shared_examples=True``; N arms in one cell): one
       example buffer receives every copy's initial states, the policies are ordinary modules over
@@ -105,7 +106,7 @@ class BatchedDualCollector(BaseCollector):
     Examples:
         >>> import torch
         >>> from tensordict.nn import TensorDictModule
-        >>> from torchrl_reset import BatchedDualCollector
+        >>> from torchrl_reset.many import BatchedDualCollector
         >>> from torchrl_reset_envs import BatchedTaskEnv
         >>> env = BatchedTaskEnv("peg_insertion_insert", seeds=[0, 1])
         >>> still = TensorDictModule(lambda obs: torch.zeros(*obs.shape[:-1], 7), in_keys=["observation"], out_keys=["action"])
@@ -147,6 +148,10 @@ class BatchedDualCollector(BaseCollector):
         if env.batch_dims != 1:
             raise ValueError(f"BatchedDualCollector runs an env of batch size [N] (N copies of a task), got "
                              f"{tuple(env.batch_size)}; for one unbatched env use DualCollector.")
+        wrong = [type(t).__name__ for t in self.triggers if not isinstance(t, RowResetTriggerTransform)]
+        if wrong:
+            raise TypeError(f"BatchedDualCollector runs each copy in its own phase, so its trigger works row by row: "
+                            f"use torchrl_reset.many.RowResetTriggerTransform instead of {', '.join(wrong)}.")
         self.num_envs = int(env.batch_size[0])
         self.max_frames_per_env = _per_copy_budget(max_frames_per_env, int(env.batch_size[0]))
         if example_buffers is None:
@@ -248,7 +253,7 @@ class BatchedDualCollector(BaseCollector):
         return root
 
     def _start(self) -> None:
-        """The first ``env.reset()``; the copies given a saved state (:meth:`copy`) continue from it."""
+        """The first ``env.reset()``; the copies given a saved state (:meth:`view`) continue from it."""
         root = self._clear_flags(self.env.reset())
         fresh = np.ones(self.num_envs, dtype=bool)
         for i, (state, smoothing) in sorted(self._pending.items()):
@@ -414,19 +419,20 @@ class BatchedDualCollector(BaseCollector):
                 yield batch
 
     # ------------------------------------------------------------- one copy
-    def copy(self, i: int) -> CollectorCopy:
-        """Copy ``i``'s view with a single collector's interface (independent runs only)."""
+    def view(self, i: int) -> CopyView:
+        """Copy ``i`` seen as one run's collector: a live view (it reads and steps this collector), with a single
+        collector's interface (independent runs only)."""
         if self.shared_examples:
-            raise ValueError("copy() gives one run's view; with a shared example buffer the copies are one run.")
+            raise ValueError("view() gives one run's view; with a shared example buffer the copies are one run.")
         if not (isinstance(i, int) and 0 <= i < self.num_envs):
             raise IndexError(f"copy index {i!r} out of range for {self.num_envs} copies.")
-        return CollectorCopy(self, i)
+        return CopyView(self, i)
 
     def pooled(self) -> PooledCollector:
         """The copies seen as one run's collector (one agent pair over N environments, shared examples only)."""
         if not self.shared_examples:
             raise ValueError("pooled() views the copies as one run; with an example buffer per copy they are "
-                             "independent runs: use copy(i).")
+                             "independent runs: use view(i).")
         return PooledCollector(self)
 
     # --------------------------------------------------------- state / seeding
@@ -443,7 +449,7 @@ class BatchedDualCollector(BaseCollector):
             td=None if self._td is None else self._td.to_dict(),
             env_state=None if self._state_owner is None or self._td is None else self._state_owner.get_simulator_state(),
             example_buffers=[b.state_dict() for b in self.example_buffers],
-            trigger_state=[(t._smoothed, t.enabled_rows) for t in self.triggers],
+            trigger_state=[(t.smoothed, t.enabled_rows) for t in self.triggers],
             events=[{**e, "state": e["state"].to_dict()} for e in self._events],
             pending=dict(self._pending),
             rng_state=torch.get_rng_state(),
@@ -466,7 +472,7 @@ class BatchedDualCollector(BaseCollector):
             buffer.load_state_dict(saved)
         for trigger, (smoothed, rows) in zip(self.triggers, state_dict.get("trigger_state", [])):
             trigger.set_enabled(True if rows is None else rows)
-            trigger._smoothed = smoothed
+            trigger.smoothed = smoothed
         self._events = [{**e, "state": TensorDict.from_dict(e["state"])} for e in state_dict.get("events", [])]
         torch.set_rng_state(state_dict["rng_state"])
         self._pending = dict(state_dict.get("pending", {}))
@@ -514,7 +520,7 @@ class _RunView:
         return self.collector.triggers
 
 
-class CollectorCopy(_RunView):
+class CopyView(_RunView):
     """One copy of a :class:`BatchedDualCollector` seen as a single run's collector.
 
     It reads like :class:`~torchrl_reset.DualCollector` for the code that keeps one run's records

@@ -18,7 +18,7 @@ from collections.abc import Iterable, Sequence
 
 import torch
 
-__all__ = ["RunMaskedAdam", "RunMaskedSoftUpdate", "RunMLP", "run_logits"]
+__all__ = ["RunMaskedAdam", "RunMaskedSoftUpdate"]
 
 
 def _check_mask(mask: torch.Tensor, runs: int) -> torch.Tensor:
@@ -189,92 +189,3 @@ class RunMaskedSoftUpdate:
         for source, target in zip(self.sources, self.targets):
             rows = index.to(target.device)
             target.index_copy_(0, rows, target.index_select(0, rows).lerp_(source.index_select(0, rows), self.weight))
-
-
-def run_logits(ensemble, observation: torch.Tensor, action: torch.Tensor, runs: int, params=None) -> torch.Tensor:
-    """The logits of S runs' ensembles held as one :class:`~torchrl_reset.EnsembleValueOperator` of S*K members.
-
-    Members ``s*K .. s*K + K - 1`` belong to run ``s`` and see only run ``s``'s inputs:
-    ``observation`` ``[S, N, d]`` and ``action`` ``[S, N, a]`` give ``[S, N, K]``, each run's
-    ``f_i(s, a) + beta * g_i(s, a)`` as its own K-member ensemble computes it.
-
-    Examples:
-        >>> import torch
-        >>> from torchrl_reset import EnsembleValueOperator
-        >>> both = EnsembleValueOperator(3, 2, num_members=2 * 4, hidden_sizes=(8, 8))  # 2 runs of K = 4
-        >>> run_logits(both, torch.randn(2, 5, 3), torch.rand(2, 5, 2), runs=2).shape
-        torch.Size([2, 5, 4])
-    """
-    members = ensemble.num_members
-    if runs < 1 or members % runs:
-        raise ValueError(f"{members} members do not split into {runs} runs.")
-    if observation.dim() != 3 or observation.shape[0] != runs or action.shape[:2] != observation.shape[:2]:
-        raise ValueError(f"observation must be [S={runs}, N, d] and action [S, N, a]; got "
-                         f"{tuple(observation.shape)} and {tuple(action.shape)}.")
-    k, n = members // runs, observation.shape[1]
-
-    def per_member(x: torch.Tensor) -> torch.Tensor:  # [S, N, *] -> [S*K, N, *]: run s's rows for its K members
-        return x.unsqueeze(1).expand(runs, k, *x.shape[1:]).reshape(members, n, x.shape[-1])
-
-    logit = ensemble.members_logits(per_member(observation), per_member(action.to(observation.dtype)), params)
-    return logit.reshape(runs, k, n).transpose(1, 2)
-
-
-class RunMLP(torch.nn.Module):
-    """S independent ReLU MLPs with their weights stacked along a leading run dimension.
-
-    ``forward(x)`` maps ``[S, *batch, in_features]`` to ``[S, *batch, out_features]``, run ``s``
-    through its own weights: what the paper's policy (400-300, Xavier-uniform weights, zero biases)
-    of each of S runs computes, in one batched product per layer. :meth:`from_modules` stacks S
-    existing ``nn.Sequential`` MLPs (``Linear``/``ReLU``), :meth:`run` gives run ``s`` back as one.
-
-    Examples:
-        >>> import torch
-        >>> mlp = RunMLP(3, 2, (16, 16), runs=4)
-        >>> mlp(torch.randn(4, 10, 3)).shape
-        torch.Size([4, 10, 2])
-    """
-
-    def __init__(self, in_features: int, out_features: int, hidden_sizes: Sequence[int], runs: int) -> None:
-        super().__init__()
-        sizes = [in_features, *hidden_sizes, out_features]
-        self.runs = runs
-        self.weights = torch.nn.ParameterList(
-            [torch.nn.Parameter(torch.empty(runs, a, b)) for a, b in zip(sizes[:-1], sizes[1:])])
-        self.biases = torch.nn.ParameterList([torch.nn.Parameter(torch.zeros(runs, b)) for b in sizes[1:]])
-        for w in self.weights:
-            bound = (6.0 / (w.shape[1] + w.shape[2])) ** 0.5
-            torch.nn.init.uniform_(w, -bound, bound)
-
-    @classmethod
-    def from_modules(cls, modules: Sequence[torch.nn.Sequential]) -> "RunMLP":
-        linears = [[m for m in module if isinstance(m, torch.nn.Linear)] for module in modules]
-        first = linears[0]
-        out = cls(first[0].in_features, first[-1].out_features, [m.out_features for m in first[:-1]], len(modules))
-        with torch.no_grad():
-            for i in range(len(first)):
-                out.weights[i].copy_(torch.stack([layers[i].weight.T for layers in linears]))
-                out.biases[i].copy_(torch.stack([layers[i].bias for layers in linears]))
-        return out
-
-    def run(self, s: int) -> torch.nn.Sequential:
-        layers = []
-        for i, (w, b) in enumerate(zip(self.weights, self.biases)):
-            linear = torch.nn.Linear(w.shape[1], w.shape[2])
-            with torch.no_grad():
-                linear.weight.copy_(w[s].T)
-                linear.bias.copy_(b[s])
-            layers += [linear] if i == len(self.weights) - 1 else [linear, torch.nn.ReLU()]
-        return torch.nn.Sequential(*layers)
-
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        if x.shape[0] != self.runs:
-            raise ValueError(f"RunMLP expects the run dimension ({self.runs}) first, got shape {tuple(x.shape)}.")
-        batch = x.shape[1:-1]
-        h = x.reshape(self.runs, -1, x.shape[-1])
-        last = len(self.weights) - 1
-        for i, (w, b) in enumerate(zip(self.weights, self.biases)):
-            h = torch.baddbmm(b.unsqueeze(1), h, w)
-            if i < last:
-                h = h.relu()
-        return h.reshape(self.runs, *batch, h.shape[-1])

@@ -1,0 +1,284 @@
+"""A run folder's files: verifiable checkpoints (a manifest of every file's size and sha256, written last),
+resuming from the newest intact one, checkpoints written before manifests, Ctrl-C handling, and the
+summary's counts of the reset episodes in the first and last quarter of a run."""
+from __future__ import annotations
+
+import csv
+import hashlib
+import json
+import logging
+import os
+import shutil
+import signal
+import sys
+from pathlib import Path
+
+import pytest
+from hydra import compose, initialize_config_dir
+
+RECIPES = Path(__file__).resolve().parents[1] / "recipes"
+sys.path.insert(0, str(RECIPES))
+
+import train  # noqa: E402
+from config_checks import ConfigError, should_resume, validate  # noqa: E402
+from run_files import Checkpoints, reset_outcomes_by_quarter, stop_on_signals  # noqa: E402
+
+TINY = [
+    "hidden_sizes=[16,16]", "heat_up=40", "task.forward_horizon=20", "forward.batch_size=16", "reset.batch_size=16",
+    "forward.buffer_size=2000", "reset.buffer_size=2000", "eval_every=50", "log_every=50", "checkpoint_every=50",
+    "progress_bar=false", "speed.compile=[]", "task=peg_insertion_remove", "algo=ours",
+]
+
+
+def config(run_dir, *overrides):
+    with initialize_config_dir(config_dir=str(RECIPES / "conf"), version_base="1.3"):
+        return compose(config_name="config", overrides=[*TINY, f"run_dir={run_dir}", *overrides])
+
+
+def rows(path, drop=("steps_per_second",)):
+    if not Path(path).exists():
+        return []
+    with open(path, newline="") as f:
+        return [{k: v for k, v in r.items() if k not in drop} for r in csv.DictReader(f)]
+
+
+def sha256(path: Path) -> str:
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+
+
+def truncate(path: Path, size: int) -> None:
+    with open(path, "r+b") as f:
+        f.truncate(size)
+
+
+# ------------------------------------------------------------------ checkpoints on their own (no training)
+def write_state(payload: bytes):
+    def write(folder: Path) -> None:
+        (folder / "state.pt").write_bytes(payload)
+        (folder / "reset_buffer").mkdir()
+        (folder / "reset_buffer" / "observation.memmap").write_bytes(payload * 3)
+    return write
+
+
+def test_a_checkpoint_lists_every_file_with_its_size_and_sha256_in_a_manifest_written_last(tmp_path):
+    folder = Checkpoints(tmp_path).save(100, write_state(b"12345678"), {"frames": 100})
+    manifest = json.loads((folder / "manifest.json").read_text())["files"]
+    expected = {name: {"size": (folder / name).stat().st_size, "sha256": sha256(folder / name)}
+                for name in ("meta.json", "state.pt", "reset_buffer/observation.memmap")}
+    assert manifest == expected
+    assert expected["state.pt"]["size"] == 8 and expected["reset_buffer/observation.memmap"]["size"] == 24
+    assert expected["state.pt"]["sha256"] == hashlib.sha256(b"12345678").hexdigest()
+    assert json.loads((folder / "meta.json").read_text()) == {"frames": 100, "manifest": "manifest.json"}
+    assert (tmp_path / "latest").read_text() == "step_0000000100"
+
+
+@pytest.mark.parametrize("damage, problem", [
+    (lambda f: truncate(f / "state.pt", 3), "state.pt has 3 bytes, the manifest lists 8"),
+    (lambda f: truncate(f / "reset_buffer" / "observation.memmap", 10),
+     "reset_buffer/observation.memmap has 10 bytes, the manifest lists 24"),
+    (lambda f: (f / "state.pt").write_bytes(b"87654321"), "state.pt differs from the manifest's sha256"),
+    (lambda f: (f / "meta.json").unlink(), "meta.json is missing"),
+    (lambda f: (f / "manifest.json").write_text('{"files": {"state.pt": '), "manifest.json is unreadable"),
+], ids=["truncated-state", "truncated-buffer-file", "changed-state", "missing-meta", "truncated-manifest"])
+def test_the_latest_checkpoint_is_the_newest_intact_one_and_damage_is_named(tmp_path, damage, problem):
+    checkpoints = Checkpoints(tmp_path)
+    checkpoints.save(100, write_state(b"12345678"), {"frames": 100})
+    checkpoints.save(200, write_state(b"12345678"), {"frames": 200})
+    damage(tmp_path / "step_0000000200")
+    latest, damaged = Checkpoints(tmp_path).survey()
+    assert latest == tmp_path / "step_0000000100"
+    assert [folder.name for folder, _ in damaged] == ["step_0000000200"]
+    assert len(damaged[0][1]) == 1 and damaged[0][1][0].startswith(problem)
+    assert Checkpoints(tmp_path).latest() == latest
+
+
+def test_a_checkpoint_written_before_manifests_counts_and_resume_auto_agrees_with_latest(tmp_path):
+    run_dir = tmp_path / "run"
+    old = run_dir / "checkpoints" / "step_0000000300"
+    old.mkdir(parents=True)
+    (old / "state.pt").write_bytes(b"state")
+    (old / "meta.json").write_text(json.dumps({"task": "peg_insertion_remove", "algo": "ours", "seed": 0,
+                                               "frames": 300, "arms": None}, indent=2))  # as written before
+    (run_dir / "checkpoints" / "latest").write_text("step_0000000300")
+    checkpoints = Checkpoints(run_dir / "checkpoints")
+    assert checkpoints.latest() == old and checkpoints.folders() == [old]
+    assert should_resume(config(run_dir, "resume=auto"))
+    validate(config(run_dir, "resume=auto"))  # resumable
+    with pytest.raises(ConfigError, match="already holds a checkpoint"):
+        validate(config(run_dir))
+
+    # its only checkpoint damaged: resume=auto still sees a checkpoint, and stops instead of starting over
+    (old / "meta.json").write_text('{"task": "peg_in')
+    assert checkpoints.latest() is None and checkpoints.folders() == [old]
+    assert should_resume(config(run_dir, "resume=auto"))
+    for resume in ("auto", "true"):
+        with pytest.raises(ConfigError, match=r"no intact checkpoint .*\n  - step_0000000300: meta.json is unreadable"):
+            validate(config(run_dir, f"resume={resume}"))
+
+
+def test_saving_the_state_a_checkpoint_already_holds_writes_nothing_and_keep_counts_intact_steps(tmp_path):
+    checkpoints = Checkpoints(tmp_path, keep=2)
+    for frames in (100, 200, 300):
+        checkpoints.save(frames, write_state(b"%d" % frames), {"frames": frames})
+    assert sorted(p.name for p in tmp_path.glob("step_*")) == ["step_0000000200", "step_0000000300"]
+    before = {p: p.stat().st_mtime_ns for p in (tmp_path / "step_0000000300").rglob("*")}
+    checkpoints.save(300, write_state(b"other"), {"frames": 300})  # no step since: the folder stands as it is
+    assert {p: p.stat().st_mtime_ns for p in (tmp_path / "step_0000000300").rglob("*")} == before
+    assert (tmp_path / "step_0000000300" / "state.pt").read_bytes() == b"300"
+
+    # a run that resumed from step 200 (step 300 damaged) and saves step 250: the later one is gone, and two
+    # checkpoints up to 250 are kept
+    truncate(tmp_path / "step_0000000300" / "state.pt", 1)
+    resumed = Checkpoints(tmp_path, keep=2)
+    resumed.current = resumed.latest().name
+    assert resumed.current == "step_0000000200"
+    resumed.save(250, write_state(b"250"), {"frames": 250})
+    assert sorted(p.name for p in tmp_path.glob("step_*")) == ["step_0000000200", "step_0000000250"]
+    assert resumed.latest().name == "step_0000000250" and (tmp_path / "latest").read_text() == "step_0000000250"
+
+
+# ------------------------------------------------------------------------------ with training runs
+@pytest.fixture(scope="module")
+def whole(tmp_path_factory):
+    """150 steps without a stop."""
+    run_dir = tmp_path_factory.mktemp("whole")
+    train.train(config(run_dir, "total_steps=150"))
+    return run_dir
+
+
+@pytest.fixture(scope="module")
+def split(tmp_path_factory):
+    """The same run stopped after 100 steps: checkpoints at 50 and 100."""
+    run_dir = tmp_path_factory.mktemp("split") / "run"
+    train.train(config(run_dir, "total_steps=100"))
+    assert sorted(p.name for p in (run_dir / "checkpoints").glob("step_*")) == ["step_0000000050", "step_0000000100"]
+    return run_dir
+
+
+def assert_same_tables(a: Path, b: Path) -> None:
+    for table in ("progress.csv", "eval.csv", "resets.csv"):
+        assert rows(a / table) == rows(b / table), table
+    assert len(rows(a / "progress.csv")) == 3
+
+
+@pytest.mark.parametrize("damaged_file", ["state.pt", "reset_buffer/storage/observation.memmap"])
+def test_a_damaged_latest_checkpoint_is_named_and_the_run_resumes_exactly_from_the_one_before(
+        tmp_path, whole, split, damaged_file, caplog):
+    run_dir = tmp_path / "run"
+    shutil.copytree(split, run_dir)
+    broken = run_dir / "checkpoints" / "step_0000000100" / damaged_file
+    size = broken.stat().st_size
+    truncate(broken, size // 2)  # what a full disk or a copy cut short leaves
+    with caplog.at_level(logging.WARNING):
+        summary = train.train(config(run_dir, "total_steps=150", "resume=true"))
+    said = [r.getMessage() for r in caplog.records if "damaged" in r.getMessage()]
+    assert len(said) == 1
+    assert "step_0000000100" in said[0]
+    assert f"{damaged_file} has {size // 2} bytes, the manifest lists {size}" in said[0]
+    assert said[0].endswith("resuming from step_0000000050")
+    assert summary["steps"] == 150 and summary["finished"]
+    assert_same_tables(whole, run_dir)  # steps 50-100 taken again, exactly as the run that never stopped
+    latest, damaged = Checkpoints(run_dir / "checkpoints").survey()  # step 100 written again, intact
+    assert latest.name == "step_0000000150" and not damaged
+    assert [p.name for p in Checkpoints(run_dir / "checkpoints").folders()] == ["step_0000000150", "step_0000000100"]
+
+
+def test_a_run_whose_checkpoints_are_all_damaged_stops_with_a_message_naming_them(tmp_path, split):
+    run_dir = tmp_path / "run"
+    shutil.copytree(split, run_dir)
+    truncate(run_dir / "checkpoints" / "step_0000000100" / "state.pt", 100)
+    (run_dir / "checkpoints" / "step_0000000050" / "manifest.json").unlink()
+    progress = (run_dir / "progress.csv").read_text()
+    for resume in ("true", "auto"):
+        with pytest.raises(ConfigError) as refused:
+            train.train(config(run_dir, "total_steps=150", f"resume={resume}"))
+        message = str(refused.value)
+        assert message.startswith(f"no intact checkpoint in {run_dir / 'checkpoints'} to resume from")
+        assert "step_0000000100: state.pt has 100 bytes, the manifest lists" in message
+        assert "step_0000000050: manifest.json is missing" in message
+    assert (run_dir / "progress.csv").read_text() == progress  # nothing started over
+
+
+def test_a_checkpoint_written_before_manifests_still_resumes_with_a_warning(tmp_path, whole, split, caplog):
+    run_dir = tmp_path / "run"
+    shutil.copytree(split, run_dir)
+    for folder in (run_dir / "checkpoints").glob("step_*"):  # as the code before manifests wrote them
+        (folder / "manifest.json").unlink()
+        meta = json.loads((folder / "meta.json").read_text())
+        del meta["manifest"]
+        (folder / "meta.json").write_text(json.dumps(meta, indent=2))
+    with caplog.at_level(logging.WARNING):
+        summary = train.train(config(run_dir, "total_steps=150", "resume=true"))
+    said = [r.getMessage() for r in caplog.records if "cannot be verified" in r.getMessage()]
+    assert len(said) == 1 and "step_0000000100" in said[0] and "\n" not in said[0]
+    assert summary["steps"] == 150
+    assert_same_tables(whole, run_dir)
+    assert (run_dir / "checkpoints" / "step_0000000150" / "manifest.json").exists()  # new ones have one
+
+
+def test_resuming_writes_nothing_into_the_checkpoint_it_reads(tmp_path, split):
+    run_dir = tmp_path / "run"
+    shutil.copytree(split, run_dir)
+
+    def files():
+        return {p: (p.stat().st_size, p.stat().st_mtime_ns, sha256(p))
+                for p in (run_dir / "checkpoints").rglob("*") if p.is_file()}
+
+    before = files()
+    summary = train.train(config(run_dir, "total_steps=100", "resume=true"))  # nothing left to do: it stops at once
+    assert summary["steps"] == 100 and summary["finished"]
+    assert files() == before
+
+
+# --------------------------------------------------------------------------------------------- signals
+def test_the_first_ctrl_c_asks_for_a_stop_and_the_second_stops_at_once():
+    previous = signal.getsignal(signal.SIGINT)
+    with stop_on_signals() as requested:
+        os.kill(os.getpid(), signal.SIGTERM)
+        os.kill(os.getpid(), signal.SIGINT)
+        assert requested == [signal.SIGTERM, signal.SIGINT]  # no KeyboardInterrupt: the step goes on
+        with pytest.raises(KeyboardInterrupt):
+            os.kill(os.getpid(), signal.SIGINT)
+            for _ in range(1000):  # the handler runs between two bytecodes of this thread
+                pass
+    assert signal.getsignal(signal.SIGINT) is previous
+
+
+# ---------------------------------------------------------------------------- the summary's quarters
+def test_the_quarters_count_every_reset_episode_that_ended_in_them(tmp_path):
+    # 500 steps logged every 50: the first quarter ends at step 125, between two log rows. Two reset
+    # episodes succeed at steps 110 and 120, after the row at step 100, which had none ended yet.
+    with open(tmp_path / "resets.csv", "w", newline="") as f:
+        writer = csv.writer(f)
+        writer.writerow(["frames", "outcome", "steps", "distance_to_start", "distance_to_examples"])
+        for frames, outcome in ((110, "success"), (120, "success"), (126, "manual"), (300, "success"),
+                                (375, "manual"), (376, "manual"), (450, "success"), (500, "terminated")):
+            writer.writerow([frames, outcome, 5, 0.0, 0.0])
+    quarters = reset_outcomes_by_quarter(tmp_path / "resets.csv", 500, reset_episodes=8)
+    assert quarters == {"first": {"from_step": 0, "to_step": 125, "reset_episodes": 2, "successful_resets": 2},
+                        "last": {"from_step": 375, "to_step": 500, "reset_episodes": 3, "successful_resets": 1}}
+    summary = {"manual_resets": 3, "episodic_resets": 9, "resets_saved": 6, "reset_episodes_by_quarter": quarters}
+    assert train._in_words(summary) == (
+        "3 manual resets where an episodic agent would have needed 9 (6 saved); 2 of 2 reset episodes succeeded "
+        "in the first quarter of the run (steps 0-125, 100%); 1 of 3 reset episodes succeeded in the last "
+        "quarter (steps 375-500, 33%).")
+    # a table that lacks some of the run's reset episodes (begun before it was written) gives no counts
+    partial = reset_outcomes_by_quarter(tmp_path / "resets.csv", 500, reset_episodes=9)
+    assert partial["first"]["reset_episodes"] is None and partial["last"]["successful_resets"] is None
+    assert "not all in resets.csv" in train._in_words({**summary, "reset_episodes_by_quarter": partial})
+    empty = reset_outcomes_by_quarter(tmp_path / "none.csv", 500, reset_episodes=0)
+    assert "no reset episode ended in the first quarter of the run (steps 0-125)" in train._in_words(
+        {**summary, "reset_episodes_by_quarter": empty})
+
+
+def test_a_runs_summary_counts_the_quarters_from_its_own_reset_episodes(whole):
+    summary = json.loads((whole / "summary.json").read_text())
+    ended = [(int(r["frames"]), r["outcome"]) for r in rows(whole / "resets.csv")]
+    first = [o for f, o in ended if f <= 37]  # 150 steps: the first quarter is steps 0-37, the last 113-150
+    last = [o for f, o in ended if f > 113]
+    quarters = summary["reset_episodes_by_quarter"]
+    for name, ended_there in (("first", first), ("last", last)):
+        counted = quarters[name]
+        assert (counted["reset_episodes"], counted["successful_resets"]) == (len(ended_there), ended_there.count("success"))
+    assert summary["reset_success_rate_last_quarter"] == (last.count("success") / len(last) if last else None)
+    assert len(ended) == summary["reset_episodes"]
