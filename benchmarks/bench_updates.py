@@ -50,7 +50,9 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "recipes"))
 
 import torchrl  # noqa: E402
-import train_utils  # noqa: E402
+from agents import lnt_batch, make_forward_agent, make_reset_agent  # noqa: E402
+from buffers import make_buffers  # noqa: E402
+from run_files import processor_name  # noqa: E402
 from torchrl_reset import accel  # noqa: E402
 
 OBS, ACT = 14, 7  # peg-insertion
@@ -87,7 +89,7 @@ def filled_buffers(cfg, transitions: int = 5000):
     """The recipe's replay buffers (n-step transform included) and example buffer, filled with random data."""
     from torchrl_reset import InitialStateBuffer
 
-    forward_rb, reset_rb = train_utils.make_buffers(cfg)
+    forward_rb, reset_rb = make_buffers(cfg)
     episode = int(cfg.task.forward_horizon)
     data = forward_batch(transitions)
     data.set(("collector", "traj_ids"), torch.arange(transitions) // episode)
@@ -120,10 +122,10 @@ def make_update(kind: str, *, members: int | None = None, batch: int | None = No
     cfg = paper_config("ours" if kind == "forward" else kind, **overrides)
     forward_rb, reset_rb, examples = filled_buffers(cfg)
     if kind == "forward":
-        agent = train_utils.make_forward_agent(cfg, OBS, action_spec())
+        agent = make_forward_agent(cfg, OBS, action_spec())
         names = ("loss_actor", "loss_value")
     else:
-        agent = train_utils.make_reset_agent(cfg, OBS, action_spec())
+        agent = make_reset_agent(cfg, OBS, action_spec())
         names = ("loss_actor", "loss_classifier") if kind == "ours" else ("loss_actor", "loss_value")
     agent.loss.to(device)  # as the recipe does
     agent.actor.to(device)  # the loss moves its own copies of the networks' buffers, not theirs (tanh bounds, priors)
@@ -139,7 +141,7 @@ def make_update(kind: str, *, members: int | None = None, batch: int | None = No
         if kind == "ours":
             td.set("example", examples.sample(td.shape[0]).to(device))
             return td
-        return train_utils.lnt_batch(td, cfg.algo, cfg.algo.num_members)
+        return lnt_batch(td, cfg.algo, cfg.algo.num_members)
 
     def update():  # one joint step on both losses (update_order=joint); the release's order adds an actor pass
         losses = loss(sample())
@@ -243,7 +245,7 @@ def matmul_rate(seconds: float = 1.0, n: int = 1024, device="cpu") -> float:
 
 
 def machine(device="cpu") -> dict:
-    info = {"cpu": train_utils.processor_name(), "cores": os.cpu_count(), "torch_threads": torch.get_num_threads(), "python": platform.python_version(),
+    info = {"cpu": processor_name(), "cores": os.cpu_count(), "torch_threads": torch.get_num_threads(), "python": platform.python_version(),
             "torch": torch.__version__, "torchrl": torchrl.__version__, "date": datetime.now(timezone.utc).isoformat(timespec="seconds"),
             "device": str(device)}
     if torch.device(device).type == "cuda":

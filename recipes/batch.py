@@ -3,7 +3,7 @@
 S runs (seeds) of one task and algorithm advance in lockstep, one environment step each per
 iteration, and their agents are updated together: one batched update call per agent type serves
 every run whose agent updates at that step (:mod:`torchrl_reset.many`). Everything else is
-each run's own, built exactly as for the run alone (:func:`train.build_run`): its environment and
+each run's own, built exactly as for the run alone (:func:`single_run.build_run`): its environment and
 collector (so its own phase, forward or reset, its own episode counters, trigger decisions, H_f / H_r
 clocks, manual resets and success examples), its replay buffers, its random streams, its records
 and its checkpoints in its own ``runs/<task>/<algo>/seed<k>`` folder. A run of the batch therefore
@@ -31,6 +31,7 @@ from agents import reset_tau
 from config_checks import ConfigError, validate
 from learner import NonFiniteLoss
 from run_files import RunInterrupted, run_folder_lock, stop_on_signals
+from single_run import TrainingDiverged, build_run, seed_process, set_up_process
 from torchrl_reset import DualCollector
 from torchrl_reset.accel import matmul_products
 from torchrl_reset.many import RunDDPGUpdate, RunRCEUpdate
@@ -423,14 +424,13 @@ def _batched_steps(collector, runs: list):
 
 
 def _train_batch(configs: list[DictConfig]) -> list[dict]:
-    import train  # the single run's pieces (train imports this module)
 
-    precision = train.set_up_process(configs[0])
+    precision = set_up_process(configs[0])
     runs, streams = [], []
     for run_cfg in configs:
         # each run is built from its own seed, in the order a run alone draws its random numbers
-        train.seed_process(int(run_cfg.seed))
-        runs.append(train.build_run(run_cfg, precision))
+        seed_process(int(run_cfg.seed))
+        runs.append(build_run(run_cfg, precision))
         streams.append(RunRNG())
     updates = BatchedUpdates(runs)
     shared = batched_collector(runs, updates, streams) if batched_acting(configs[0]) else None
@@ -468,7 +468,7 @@ def _train_batch(configs: list[DictConfig]) -> list[dict]:
                                                 "each run's last checkpoint stands") from None
     except NonFiniteLoss as err:
         paths = [str(run.state.save()) for run in runs]  # the update stopped before it changed anything
-        raise train.TrainingDiverged(f"non-finite loss ({err}); every run's last good state is checkpointed "
+        raise TrainingDiverged(f"non-finite loss ({err}); every run's last good state is checkpointed "
                                      f"({', '.join(paths)}). Lower the learning rates or check the inputs.") from err
     finally:
         for run in runs:

@@ -80,7 +80,7 @@ NOT_A_SETTING = ("seed", "seeds", "vary", "vary_values", "device", "threads", "s
 PAPER_SETTING = "paper's setting"
 
 
-class Run:
+class RunFolder:
     """One run folder: its summary, config and logged tables; with ``budget``, everything as it stood
     at that many steps (the counters of the last ``progress.csv`` row at or before it, the
     evaluations up to it), so that runs that went on longer are compared at the same budget."""
@@ -215,7 +215,7 @@ def _value_text(value) -> str:
     return str(value)
 
 
-def assign_settings(runs: list[Run]) -> None:
+def assign_settings(runs: list[RunFolder]) -> None:
     """Give each run the settings that set it apart from the other runs of its task and algorithm
     (``run.setting``: ``""`` where all agree, ``"paper's setting"`` for the recipe's defaults, else
     ``key=value`` overrides such as ``algo.initial_logit_bias=-4``), so that the report keeps them apart."""
@@ -267,7 +267,7 @@ def _float(value: str) -> float:
         return {"True": 1.0, "False": 0.0}.get(value, math.nan)
 
 
-def find_runs(paths: list[Path], budget: int | None = None) -> list[Run]:
+def find_runs(paths: list[Path], budget: int | None = None) -> list[RunFolder]:
     """Run folders: those with a ``summary.json``, and runs still going (``config.yaml`` and ``progress.csv``)."""
     folders = set()
     for path in paths:
@@ -282,7 +282,7 @@ def find_runs(paths: list[Path], budget: int | None = None) -> list[Run]:
     runs = []
     for folder in folders:
         try:
-            runs.append(Run(folder, budget))
+            runs.append(RunFolder(folder, budget))
         except ValueError as err:
             if budget is None or "no progress.csv row" not in str(err):
                 raise
@@ -314,11 +314,11 @@ def _paper(value, kind: str) -> str:
     return f"{100 * value:.1f}%" if kind == "share" else (f"{value:.0f}" if kind == "count" else f"{value:.2f}")
 
 
-def _reached(run: Run) -> bool:
+def _reached(run: RunFolder) -> bool:
     return run.budget is None or run.summary.get("steps", 0) >= run.budget
 
 
-def _complete(groups: dict) -> tuple[dict, list[Run]]:
+def _complete(groups: dict) -> tuple[dict, list[RunFolder]]:
     """With a budget, each group's runs that reached it; runs short of it are left out of the means
     (listed apart) unless no run of their group reached it (the row is then marked in progress)."""
     kept, short = {}, []
@@ -335,7 +335,7 @@ def _row_order(task: str, algo: str, setting: str, p_thresh) -> tuple:
             p_thresh or 0)
 
 
-def table1(runs: list[Run]) -> str:
+def table1(runs: list[RunFolder]) -> str:
     """Markdown table: one row per (task, algo, setting, p_thresh) group, mean ± std over its seeds, paper beside
     (the paper's numbers only on its own setting's rows)."""
     groups, short = _complete(_by(runs, "task", "algo", "setting", "p_thresh"))
@@ -397,7 +397,7 @@ def table1(runs: list[Run]) -> str:
     )
 
 
-def _curves(members: list[Run], table: str, column: str):
+def _curves(members: list[RunFolder], table: str, column: str):
     """Per-run (steps, values) curves of ``column`` from ``table``."""
     out = []
     for run in members:
@@ -424,7 +424,7 @@ def _plot_band(ax, curves, color, label, linestyle="-", band=True, **line):
     return mean_line
 
 
-def _by(runs: list[Run], *attributes: str) -> dict[tuple, list[Run]]:
+def _by(runs: list[RunFolder], *attributes: str) -> dict[tuple, list[RunFolder]]:
     groups = defaultdict(list)
     for run in runs:
         groups[tuple(getattr(run, a) for a in attributes)].append(run)
@@ -462,7 +462,7 @@ def _panel_note(ax, text: str, where: str = "centre") -> None:
             bbox=dict(boxstyle="round", facecolor="white", edgecolor="0.6", alpha=0.9))
 
 
-def figure3_groups(task_runs: list[Run]) -> dict[str, tuple[list[Run], str]]:
+def figure3_groups(task_runs: list[RunFolder]) -> dict[str, tuple[list[RunFolder], str]]:
     """Fig. 3's runs per algorithm (and setting, where runs differ in one) and their legend label: the runs
     the table's means take (with a budget, those that reached it, so that no band jumps where a shorter run
     ends). Keys: the algorithm, with `` (<setting>)`` where its runs differ in settings."""
@@ -492,13 +492,13 @@ def _episodic_style(style: str, settings_differ: bool) -> dict:
     return {"linestyle": style, "lw": 1.2, "marker": "o", "mfc": "none", "ms": 3.5, "markevery": 0.1}
 
 
-def _config_value(run: Run, key: str):
+def _config_value(run: RunFolder, key: str):
     from omegaconf import OmegaConf
 
     return None if run.config is None else OmegaConf.select(run.config, key, default=None)
 
 
-def _return_note(members: list[Run]) -> str | None:
+def _return_note(members: list[RunFolder]) -> str | None:
     """Why a group's forward-return curve is missing or flat: no evaluation yet, or every return 0."""
     returns = [run.table("eval.csv").get("forward_return", np.zeros(0)) for run in members]
     returns = np.concatenate(returns) if returns else np.zeros(0)
@@ -528,7 +528,7 @@ def _fit_episodic(ax, manual_lines: list, episodic_lines: list, room: float = 2.
             line.set_label(f"{line.get_label()}\noff the scale: {y:,.0f} at {_steps_label(x)} steps")
 
 
-def fig3_figure(task: str, task_runs: list[Run]):
+def fig3_figure(task: str, task_runs: list[RunFolder]):
     """Fig. 3 of one task: the evaluation forward return and the cumulative manual resets against steps, one
     band per algorithm (and setting), each beside the resets an episodic agent would have needed (one per
     forward episode, ``forward_episodes``), with a note where a return curve is missing or flat."""
@@ -565,14 +565,14 @@ def fig3_figure(task: str, task_runs: list[Run]):
     return fig
 
 
-def figure3(runs: list[Run], out: Path) -> list[Path]:
+def figure3(runs: list[RunFolder], out: Path) -> list[Path]:
     written = []
     for (task,), task_runs in _by(runs, "task").items():
         _save(fig3_figure(task, task_runs), out / f"fig3_{task}.png", written)
     return written
 
 
-def figure4(runs: list[Run], out: Path) -> list[Path]:
+def figure4(runs: list[RunFolder], out: Path) -> list[Path]:
     written = []
     for (task, algo, setting), members in _by(runs, "task", "algo", "setting").items():
         thresholds = sorted({r.p_thresh for r in members if r.p_thresh is not None})
@@ -590,13 +590,13 @@ def figure4(runs: list[Run], out: Path) -> list[Path]:
     return written
 
 
-def _run_labels(members: list[Run]) -> list[str]:
+def _run_labels(members: list[RunFolder]) -> list[str]:
     """``seed k`` for each run, with its p_thresh where the runs differ in it."""
     sweep = len({run.p_thresh for run in members}) > 1
     return [f"seed {run.summary['seed']}" + (f", p_thresh {run.p_thresh}" if sweep else "") for run in members]
 
 
-def fig5_figure(task: str, algo: str, setting: str, members: list[Run]):
+def fig5_figure(task: str, algo: str, setting: str, members: list[RunFolder]):
     """Fig. 5 of one task and algorithm: the curriculum entry of the state just before each triggered reset
     against steps, per run; a run without any triggered reset is named on the figure."""
     fig, ax = plt.subplots(figsize=(6, 3.8))
@@ -624,7 +624,7 @@ def fig5_figure(task: str, algo: str, setting: str, members: list[Run]):
     return fig
 
 
-def figure5(runs: list[Run], out: Path) -> list[Path]:
+def figure5(runs: list[RunFolder], out: Path) -> list[Path]:
     written = []
     for (task, algo, setting), members in _by(runs, "task", "algo", "setting").items():
         _save(fig5_figure(task, algo, setting, members), out / f"fig5_{task}_{algo}{_file_suffix(setting)}.png",
@@ -661,7 +661,7 @@ def _run_colors(n: int) -> list:
     return [tuple(c) for c in plt.get_cmap("turbo")(np.linspace(0.05, 0.95, n))]
 
 
-def _trigger_thresholds(algo: str, members: list[Run]) -> list[tuple[str, float]]:
+def _trigger_thresholds(algo: str, members: list[RunFolder]) -> list[tuple[str, float]]:
     """The trigger's threshold lines: ours' p_thresh (the threshold its trigger used), LNT's Q_thresh
     (``algo.threshold`` of the run's config)."""
     if algo == "ours":
@@ -698,7 +698,7 @@ def success_rate_per_stretch(frames, successful, manual, stretch: float) -> np.n
         return np.where(ended > 0, success / ended, np.nan)
 
 
-def diagnostics_figure(task: str, algo: str, setting: str, members: list[Run]):
+def diagnostics_figure(task: str, algo: str, setting: str, members: list[RunFolder]):
     """What explains a run (``diagnostics.csv``, ``resets.csv``, ``progress.csv``) for one task and algo, or
     ``None`` where no run logged diagnostics: the trigger's score on executed forward steps against its
     threshold, the reset model on examples, reset replay and forward replay, the reset success rate per
@@ -787,7 +787,7 @@ def diagnostics_figure(task: str, algo: str, setting: str, members: list[Run]):
     return fig
 
 
-def figure_diagnostics(runs: list[Run], out: Path) -> list[Path]:
+def figure_diagnostics(runs: list[RunFolder], out: Path) -> list[Path]:
     """One diagnostics figure per task, algorithm and setting whose runs logged diagnostics
     (:func:`diagnostics_figure`)."""
     written = []
@@ -798,7 +798,7 @@ def figure_diagnostics(runs: list[Run], out: Path) -> list[Path]:
     return written
 
 
-def _curriculum_label(run: Run) -> str:
+def _curriculum_label(run: RunFolder) -> str:
     config = run.folder / "config.yaml"
     if config.exists():
         from omegaconf import OmegaConf

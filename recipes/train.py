@@ -22,45 +22,29 @@ from __future__ import annotations
 
 import logging
 import os
-import random
 import re
 import shlex
 import signal
 import sys
-from dataclasses import dataclass
 from pathlib import Path
 
 import hydra
-import numpy as np
-import torch
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from agents import make_forward_agent, make_reset_agent  # noqa: E402
 from batch import batch_runs, run_configs, train_batch  # noqa: E402
-from buffers import make_buffers  # noqa: E402
-from config_checks import ConfigError, arm_count, reset_horizon, should_resume, torch_threads, validate  # noqa: E402
-from learner import Learner, NonFiniteLoss, make_collector  # noqa: E402
-from records import RunRecord  # noqa: E402
-from run_files import (Checkpoints, CheckpointDamaged, RunFolderBusy, RunInterrupted, TrainingState,  # noqa: E402
-                       run_folder_lock, stop_on_signals)
-from task_envs import EVAL_SEED_OFFSET, evaluate, make_task_env, realtime_env, task_dimensions  # noqa: E402
+from config_checks import ConfigError, arm_count, validate  # noqa: E402
+from learner import NonFiniteLoss  # noqa: E402
+from run_files import (Checkpoints, CheckpointDamaged, RunFolderBusy, RunInterrupted, run_folder_lock,  # noqa: E402
+                       stop_on_signals)
+from single_run import RobotStopped, TrainingDiverged, build_run, set_up_process  # noqa: E402
 
 from torchrl_reset import DualCollector  # noqa: E402
 from torchrl_reset.many import split_phases  # noqa: E402
-from torchrl_reset.accel import choose_matmul_precision, retain_freed_memory  # noqa: E402
 from torchrl_reset_envs.ur3_backends import RobotFault  # noqa: E402
 
 log = logging.getLogger("torchrl_reset.train")
-
-
-class TrainingDiverged(RuntimeError):
-    """A loss became NaN or infinite; the last good state was checkpointed."""
-
-
-class RobotStopped(RuntimeError):
-    """The robot reported a fault the run must not go on through; the run was checkpointed."""
 
 
 def train(cfg: DictConfig) -> dict:
@@ -70,133 +54,6 @@ def train(cfg: DictConfig) -> dict:
     run_dir.mkdir(parents=True, exist_ok=True)
     with run_folder_lock(run_dir):
         return _train(cfg)
-
-
-def seed_process(seed: int) -> None:
-    """Seeds torch's, numpy's and Python's global generators, as a run does before it builds anything."""
-    torch.manual_seed(seed)
-    np.random.seed(seed)
-    random.seed(seed)
-
-
-def set_up_process(cfg: DictConfig) -> str:
-    """Torch threads, the ``speed.*`` settings and the seeds; returns the CPU product precision chosen."""
-    torch.set_num_threads(torch_threads(cfg))
-    accelerate = bool(OmegaConf.select(cfg, "speed.accelerate", default=True))
-    if accelerate and cfg.speed.retain_memory:
-        retain_freed_memory()
-    # a setting of CPU products: with the networks on another device it changes nothing
-    on_cpu = torch.device(cfg.device).type == "cpu"
-    setting = OmegaConf.select(cfg, "speed.matmul_precision", default="ieee") if on_cpu and accelerate else "ieee"
-    precision = choose_matmul_precision(setting)
-    seed_process(int(cfg.seed))
-    logging.getLogger("torchrl").setLevel(logging.WARNING)
-    return precision
-
-
-@dataclass
-class Run:
-    """One run's pieces: its agents, envs, collector, buffers, training state, records and learner."""
-
-    cfg: DictConfig
-    forward: object
-    reset: object
-    env: object
-    trigger: object
-    eval_env: object
-    eval_trigger: object
-    collector: DualCollector
-    forward_rb: object
-    reset_rb: object
-    state: TrainingState
-    record: RunRecord
-    learner: Learner
-    robot: object
-    matmul_precision: str
-
-    def evaluation(self) -> dict:
-        """One forward and one reset episode without noise."""
-        cfg = self.cfg
-        return evaluate(self.eval_env, self.eval_trigger, self.forward.actor, self.reset.actor,
-                        horizon=int(cfg.task.forward_horizon), reset_horizon=reset_horizon(cfg),
-                        min_reset_steps=int(cfg.reset.min_steps), gamma=float(cfg.gamma))
-
-    def after_step(self, batch, phase: str) -> None:
-        """The step's record, then the evaluation, log row and checkpoint that fall on this step."""
-        self.record.step(batch, phase)
-        self.after_frames(self.collector.frames - batch.numel())
-
-    def after_frames(self, before: int) -> None:
-        """The evaluation, log row and checkpoint due since step ``before`` (one step earlier for a run on
-        one env; with N arms an iteration takes up to N steps and may pass a multiple of ``eval_every``)."""
-        cfg, frames = self.cfg, self.collector.frames
-
-        def due(every) -> bool:
-            return frames // int(every) > before // int(every)
-
-        if due(cfg.eval_every):
-            self.record.evaluation(self.evaluation())
-        if due(cfg.log_every):
-            self.record.log(self.learner, self.env)
-        if due(cfg.checkpoint_every):
-            self.checkpoint()
-
-    def adopt(self, collector) -> None:
-        """Collects with ``collector`` from now on (a batch's :meth:`~torchrl_reset.many.BatchedDualCollector.view`,
-        loaded from this run's own collector): every piece that reads the collector reads it."""
-        own = self.collector
-        for holder in (self, self.state, self.record, self.learner):
-            holder.collector = collector
-        own.shutdown()  # its env is not stepped again
-
-    def checkpoint(self):
-        self.record.mark_time()
-        return self.state.save()
-
-    def finish(self, interrupted: bool, extra: dict | None = None) -> dict:
-        """The last checkpoint and the summary (with ``extra`` entries); closes the envs."""
-        self.checkpoint()
-        finished = self.collector.frames >= int(self.cfg.total_steps) and not interrupted
-        summary = self.record.summary(finished=finished, learner=self.learner, env=self.env, robot=self.robot,
-                                      matmul_precision=self.matmul_precision, extra=extra)
-        self.collector.shutdown()
-        self.eval_env.close()
-        return summary
-
-
-def build_run(cfg: DictConfig, matmul_precision: str) -> Run:
-    """Algorithm 1, lines 1-4, for one run (resumed from its checkpoint when ``resume`` says so)."""
-    run_dir = Path(cfg.run_dir)
-    obs_dim, action_spec = task_dimensions(cfg)
-    forward = make_forward_agent(cfg, obs_dim, action_spec)  # pi_f and Q
-    reset = make_reset_agent(cfg, obs_dim, action_spec)  # pi_r and the classifiers C_i (LNT: the Q_i)
-    for agent in (forward, reset):
-        agent.loss.to(cfg.device)
-        # the loss moves the networks' parameters in place but only its own copies of their buffers
-        # (the tanh module's action bounds, the ensemble's priors): the modules that act keep theirs
-        agent.actor.to(cfg.device)
-        agent.model.to(cfg.device)
-    env, trigger = make_task_env(cfg, reset)  # the trigger watches every forward action
-    eval_env, eval_trigger = make_task_env(cfg, reset, for_eval=True)
-    collector = make_collector(cfg, env, forward, reset)  # S* lives in the collector
-    eval_env.set_seed(int(cfg.seed) + EVAL_SEED_OFFSET)
-    forward_rb, reset_rb = make_buffers(cfg)
-
-    state = TrainingState(Checkpoints(run_dir / "checkpoints", keep=int(cfg.keep_checkpoints)), cfg,
-                          forward, reset, collector, forward_rb, reset_rb, eval_env)
-    record = RunRecord(cfg, run_dir, collector, trigger)
-    if should_resume(cfg):
-        folder = state.load()
-        record.begin(state.history)
-        log.info("resumed from %s at step %d", folder, collector.frames)
-    else:
-        record.begin(None)
-    state.history = record.history
-    robot = realtime_env(env)
-    learner = Learner(cfg, forward, reset, forward_rb, reset_rb, collector, matmul_precision, robot,
-                      last_losses=record.history["last_losses"])
-    return Run(cfg, forward, reset, env, trigger, eval_env, eval_trigger, collector, forward_rb, reset_rb, state,
-               record, learner, robot, matmul_precision)
 
 
 def _train(cfg: DictConfig) -> dict:

@@ -19,9 +19,14 @@ from torchrl.objectives import DDPGLoss
 RECIPES = Path(__file__).resolve().parents[1] / "recipes"
 sys.path.insert(0, str(RECIPES))
 
+import single_run  # noqa: E402
 import train  # noqa: E402
-import train_utils  # noqa: E402
-from train_utils import ALGOS, ConfigError  # noqa: E402
+from torchrl_reset_envs import make_env  # noqa: E402
+from agents import lnt_batch, make_actor, make_reset_agent  # noqa: E402
+from buffers import make_buffers  # noqa: E402
+from run_files import Checkpoints, processor_name  # noqa: E402
+from task_envs import UpdateBudget, realtime_env  # noqa: E402
+from config_checks import ALGOS, ConfigError  # noqa: E402
 
 from torchrl_reset import EnsembleValueOperator, accel  # noqa: E402
 from torchrl_reset_envs import TASKS  # noqa: E402
@@ -160,7 +165,7 @@ def test_sigterm_ends_the_run_after_its_step_with_a_checkpoint_and_a_summary(tmp
 
 
 def test_a_crash_while_checkpointing_keeps_the_previous_checkpoint(tmp_path):
-    checkpoints = train_utils.Checkpoints(tmp_path)
+    checkpoints = Checkpoints(tmp_path)
     checkpoints.save(100, lambda folder: (folder / "state.pt").write_text("first"), {"frames": 100})
 
     def crash(folder):
@@ -213,10 +218,10 @@ def test_unknown_config_group_option_is_rejected_by_hydra(tmp_path):
 
 
 def test_a_nan_loss_stops_the_run_with_a_checkpoint_of_the_last_good_state(tmp_path, monkeypatch):
-    make_buffers = train_utils.make_buffers
+    original = make_buffers
 
     def poisoned(cfg):
-        forward_rb, reset_rb = make_buffers(cfg)
+        forward_rb, reset_rb = original(cfg)
         sample = forward_rb.sample
 
         def nan_rewards(*args, **kwargs):
@@ -227,10 +232,10 @@ def test_a_nan_loss_stops_the_run_with_a_checkpoint_of_the_last_good_state(tmp_p
         forward_rb.sample = nan_rewards
         return forward_rb, reset_rb
 
-    monkeypatch.setattr(train, "make_buffers", poisoned)
+    monkeypatch.setattr(single_run, "make_buffers", poisoned)
     with pytest.raises(train.TrainingDiverged, match="non-finite loss at step"):
         train.train(config(tmp_path, "task=peg_insertion_insert", "total_steps=300"))
-    latest = train_utils.Checkpoints(tmp_path / "checkpoints").latest()
+    latest = Checkpoints(tmp_path / "checkpoints").latest()
     state = torch.load(latest / "state.pt", weights_only=False)
     params = [v for v in state["forward_loss"].values() if torch.is_tensor(v) and v.is_floating_point()]
     assert params and all(torch.isfinite(p).all() for p in params)  # no update was applied with the NaN loss
@@ -249,8 +254,8 @@ def test_lnt_reset_loss_gives_each_member_its_own_td_target(tmp_path):
     from tensordict import TensorDict
 
     cfg = config(tmp_path, "task=peg_insertion_insert", "algo=lnt")
-    spec = train_utils.make_env("peg_insertion_insert").action_spec
-    agent = train_utils.make_reset_agent(cfg, 14, spec)
+    spec = make_env("peg_insertion_insert").action_spec
+    agent = make_reset_agent(cfg, 14, spec)
     k, b = cfg.algo.num_members, 6
     td = TensorDict({
         "observation": torch.randn(b, 14), "action": torch.rand(b, 7) * 4 - 2,
@@ -259,7 +264,7 @@ def test_lnt_reset_loss_gives_each_member_its_own_td_target(tmp_path):
     }, [b])
     for reward_kind, reward in (("shaped", td["next", "reset_reward"]), ("sparse", td["next", "reset_success"].float())):
         cfg.algo.reset_reward = reward_kind
-        loss = agent.loss(train_utils.lnt_batch(td.clone(), cfg.algo, k))["loss_value"]
+        loss = agent.loss(lnt_batch(td.clone(), cfg.algo, k))["loss_value"]
         with torch.no_grad():  # targets start equal to the online networks
             q_next = agent.model(agent.actor(td["next"].clone()))["state_action_value"]
             q = agent.model(td.clone())["state_action_value"]
@@ -269,7 +274,7 @@ def test_lnt_reset_loss_gives_each_member_its_own_td_target(tmp_path):
 
 
 def test_update_budget_skips_updates_that_would_not_fit_in_the_control_period():
-    budget = train_utils.UpdateBudget(margin=0.002)
+    budget = UpdateBudget(margin=0.002)
     assert budget.fits("reset", 0.04)  # nothing measured yet
     budget.record("reset", 0.030)
     assert not budget.fits("reset", 0.031)  # 31 ms left - 2 ms margin < 30 ms
@@ -285,15 +290,15 @@ def test_realtime_env_is_found_only_on_a_real_time_backend():
 
     from torchrl_reset_envs import UR3Env
 
-    assert train_utils.realtime_env(train_utils.make_env("ur3_peg")) is None
+    assert realtime_env(make_env("ur3_peg")) is None
     robot = UR3Env("peg", backend=ClockedBackend(FakeClock()), manual_reset=lambda env: None)
-    assert train_utils.realtime_env(TransformedEnv(robot)) is robot
+    assert realtime_env(TransformedEnv(robot)) is robot
 
 
 def test_fused_soft_update_moves_every_target_by_tau_and_tensor_module_writes_its_output():
     from torchrl.data import Bounded
 
-    actor = train_utils.make_actor(3, Bounded(-1.0, 1.0, shape=(2,)), (8,))
+    actor = make_actor(3, Bounded(-1.0, 1.0, shape=(2,)), (8,))
     obs = torch.randn(5, 3)
     net = actor[0].module
     torch.testing.assert_close(actor(TensorDict(observation=obs, batch_size=[5]))["action_preactivation"], net(obs))
@@ -390,11 +395,11 @@ def test_diagnostics_score_every_forward_step_and_resets_csv_has_every_reset_epi
 
 def test_options_beside_the_paper_a_pessimistic_start_and_the_reset_agents_own_tau(tmp_path):
     # the paper's setting: trained output biases start at zero and the reset agent's tau is the global one
-    spec = train_utils.make_env("peg_insertion_insert").action_spec
+    spec = make_env("peg_insertion_insert").action_spec
     torch.manual_seed(0)
-    paper = train_utils.make_reset_agent(config(tmp_path, "algo=ours"), 14, spec)
+    paper = make_reset_agent(config(tmp_path, "algo=ours"), 14, spec)
     torch.manual_seed(0)
-    pessimistic = train_utils.make_reset_agent(config(tmp_path, "algo=ours", "algo.initial_logit_bias=-4",
+    pessimistic = make_reset_agent(config(tmp_path, "algo=ours", "algo.initial_logit_bias=-4",
                                                      "reset.tau=0.01"), 14, spec)
     td = TensorDict(observation=torch.randn(32, 14), action=torch.rand(32, 7) * 2 - 1, batch_size=[32])
     with torch.no_grad():
@@ -411,10 +416,10 @@ def test_lnt_option_beside_the_paper_targets_clipped_to_the_rewards_bounds(tmp_p
 
     from torchrl_reset.td_bounds import BoundedTD0Estimator
 
-    spec = train_utils.make_env("peg_insertion_insert").action_spec
-    paper = train_utils.make_reset_agent(config(tmp_path, "algo=lnt", f"speed.accelerate={accelerate}"), 14, spec)
+    spec = make_env("peg_insertion_insert").action_spec
+    paper = make_reset_agent(config(tmp_path, "algo=lnt", f"speed.accelerate={accelerate}"), 14, spec)
     assert type(paper.loss.value_estimator) is TD0Estimator  # the paper's LNT: unclipped
-    clipped = train_utils.make_reset_agent(config(tmp_path, "algo=lnt", "algo.reward_bounds=[0,1]",
+    clipped = make_reset_agent(config(tmp_path, "algo=lnt", "algo.reward_bounds=[0,1]",
                                                   f"speed.accelerate={accelerate}"), 14, spec)
     estimator = clipped.loss.value_estimator
     # rewards in [0, 1] at gamma = 0.99: every value lies in [0, 1 / 0.01] = [0, 100]
@@ -451,7 +456,7 @@ def test_a_robot_fault_stops_the_run_after_a_checkpoint(tmp_path, monkeypatch):
     monkeypatch.setattr(train.DualCollector, "_step", faulty)
     with pytest.raises(train.RobotStopped, match="protective stops.*resume=true"):
         train.train(config(tmp_path, "task=ur3_peg", "algo=ours", "total_steps=400"))
-    latest = train_utils.Checkpoints(tmp_path / "checkpoints").latest()
+    latest = Checkpoints(tmp_path / "checkpoints").latest()
     assert int(json.loads((latest / "meta.json").read_text())["frames"]) == 120  # every step taken is kept
     assert int(rows(tmp_path / "progress.csv")[-1]["frames"]) == 100
 
@@ -460,11 +465,11 @@ def test_the_summary_names_the_processor_kind_a_run_reproduces_on(tmp_path):
     info = tmp_path / "cpuinfo"
     info.write_text("processor\t: 0\nmodel name\t: AMD EPYC\nflags\t\t: fpu sse2 avx2 avx512f avx512_bf16\n\n"
                     "processor\t: 1\nmodel name\t: AMD EPYC\nflags\t\t: fpu sse2 avx2 avx512f avx512_bf16\n")
-    assert train_utils.processor_name(info) == "AMD EPYC, AVX-512 BF16"
+    assert processor_name(info) == "AMD EPYC, AVX-512 BF16"
     info.write_text("model name\t: Intel(R) Xeon(R) Processor\nflags\t\t: fpu sse2 avx2\n")
-    assert train_utils.processor_name(info) == "Intel(R) Xeon(R) Processor, AVX2"
+    assert processor_name(info) == "Intel(R) Xeon(R) Processor, AVX2"
     info.write_text("model name\t: Some CPU\nflags\t\t: fpu sse2\n")
-    assert train_utils.processor_name(info) == "Some CPU"
+    assert processor_name(info) == "Some CPU"
 
 
 @pytest.mark.parametrize("release_order", [True, False])
@@ -474,9 +479,9 @@ def test_release_order_steps_the_critic_then_the_actor_with_it_on_rows_drawn_aga
     from learner import update_agent
 
     cfg = config(tmp_path, "algo=ours")
-    spec = train_utils.make_env("peg_insertion_insert").action_spec
+    spec = make_env("peg_insertion_insert").action_spec
     torch.manual_seed(0)
-    agent = train_utils.make_reset_agent(cfg, 14, spec)
+    agent = make_reset_agent(cfg, 14, spec)
     actor_params, critic_params = list(agent.actor.parameters()), list(agent.model.parameters())
     agent.optimizer = torch.optim.SGD([{"params": actor_params, "lr": 0.3}, {"params": critic_params, "lr": 0.5}])
     b = 16
@@ -484,7 +489,7 @@ def test_release_order_steps_the_critic_then_the_actor_with_it_on_rows_drawn_aga
     sample = TensorDict(observation=torch.randn(b, 14), action=torch.rand(b, 7) * 2 - 1, next=state(),
                         nstep=state(), example=state(), batch_size=[b])
     torch.manual_seed(0)
-    reference = train_utils.make_reset_agent(cfg, 14, spec)  # the same networks, to be stepped by hand
+    reference = make_reset_agent(cfg, 14, spec)  # the same networks, to be stepped by hand
     ref_actor, ref_critic = list(reference.actor.parameters()), list(reference.model.parameters())
 
     # by hand: theta_c <- theta_c - 0.5 dL_c; then rows drawn with replacement, theta_a <- theta_a - 0.3 dL_a
@@ -496,7 +501,7 @@ def test_release_order_steps_the_critic_then_the_actor_with_it_on_rows_drawn_aga
     rows = torch.randint(b, (b,)) if release_order else torch.arange(b)
     if not release_order:  # the joint step: the actor's loss from the classifiers before their step
         torch.manual_seed(0)
-        reference = train_utils.make_reset_agent(cfg, 14, spec)
+        reference = make_reset_agent(cfg, 14, spec)
         ref_actor = list(reference.actor.parameters())
     grads = torch.autograd.grad(reference.loss.loss_actor(sample[rows].clone())[0], ref_actor)
     expected_actor = [(p - 0.3 * g).detach() for p, g in zip(ref_actor, grads)]
@@ -516,11 +521,11 @@ def test_cliff_walker_explores_with_the_releases_smaller_noise(tmp_path):
     """The release's configs: sigma 0.01 and dt 0.01 for cliff-walker's two agents, 0.2 and 0.05 elsewhere."""
     from agents import exploration_settings, with_exploration
 
-    spec = train_utils.make_env("peg_insertion_insert").action_spec
+    spec = make_env("peg_insertion_insert").action_spec
     for task, sigma, dt in (("cliff_walker", 0.01, 0.01), ("cliff_cheetah", 0.2, 0.05), ("peg_insertion_insert", 0.2, 0.05)):
         cfg = config(tmp_path, f"task={task}")
         assert exploration_settings(cfg) | {"sigma": sigma, "dt": dt, "theta": 0.15} == exploration_settings(cfg)
-        noise = with_exploration(train_utils.make_actor(14, spec, [16, 16]), spec, cfg)[-1].ou
+        noise = with_exploration(make_actor(14, spec, [16, 16]), spec, cfg)[-1].ou
         assert (noise.sigma, noise.dt, noise.theta) == (sigma, dt, 0.15)
 
 
