@@ -44,13 +44,16 @@ TASK, ALGO = "peg_insertion_insert", "ours"
 GRID_RUNS, PAPER_STEPS = 90, 1_500_000  # the paper's Table 1: 6 tasks x 3 algorithms x 5 seeds, 1.5M steps each
 TARGET_RATIO_S5 = 1.7  # S = 5 batched against separate processes, two CPU cores
 TARGET_OUTSIDE_MS_S5 = 1.0  # per run-step outside the updates at S = 5
+# what a batch of runs supports (docs/many-runs.md), for every layout alike: the same work per run-step
+BATCH_SETTINGS = ("exploration.restart=episode", "update_order=joint")
 
 
 def command(out: Path, steps: int, heat_up: int, threads: int, *, seeds=None, seed: int = 0,
             overrides: tuple[str, ...] = ()) -> list[str]:
     args = [sys.executable, str(ROOT / "recipes" / "train.py"), f"task={TASK}", f"algo={ALGO}", f"total_steps={steps}",
             f"heat_up={heat_up}", f"threads={threads}", f"sweep_dir={out}", "progress_bar=false",
-            f"eval_every={10 * steps}", f"checkpoint_every={10 * steps}", f"log_every={steps}", *overrides]
+            f"eval_every={10 * steps}", f"checkpoint_every={10 * steps}", f"log_every={steps}", *BATCH_SETTINGS,
+            *overrides]
     return args + ([f"seeds={seeds}"] if seeds is not None else [f"seed={seed}"])
 
 
@@ -163,7 +166,7 @@ def main(argv=None) -> dict:
              f"{args.threads} torch threads; separate: single runs, 1 thread each, two processes at a time.",
              f"peg-insertion (insert), ours at the paper's settings, {args.steps} steps per run, heat-up "
              f"{args.heat_up}; rates over the steps once every run's agents both update."
-             + (f" Changed from the paper's settings: {', '.join(extra)}." if extra else ""), "",
+             + f" Changed from the paper's settings: {', '.join((*BATCH_SETTINGS, *extra))}.", "",
              "| runs S | aggregate run-steps/s | vs separate processes | outside the updates, ms per run-step "
              "| updates, ms per iteration | mean forward share |", "|---|---|---|---|---|---|",
              f"| separate (2 processes) | {separate:.1f} | 1.00x | | | "
