@@ -50,7 +50,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "recipes"))
 
 import torchrl  # noqa: E402
-from agents import lnt_batch, make_forward_agent, make_reset_agent  # noqa: E402
+from agents import make_forward_agent, make_reset_agent  # noqa: E402
+from reset_agents import lnt_batch  # noqa: E402
 from buffers import make_buffers  # noqa: E402
 from run_files import processor_name  # noqa: E402
 from torchrl_reset import accel  # noqa: E402

@@ -1,5 +1,6 @@
 """The recipe's agents: the paper's networks, the forward DDPG agent, the reset agent (ours: RCE on a
-classifier ensemble with priors; LNT: DDPG on a Q ensemble) and the trigger each reset agent drives."""
+classifier ensemble with priors; LNT: DDPG on a Q ensemble; each kind described in :mod:`reset_agents`)
+and the trigger each reset agent drives."""
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -15,9 +16,10 @@ from torchrl.objectives import SoftUpdate
 
 from torchrl_reset import ResetTriggerTransform, accel
 from torchrl_reset.many import RowResetTriggerTransform
-from torchrl_reset.td_bounds import bound_td0_targets
 
-__all__ = ["speed_components", "make_actor", "with_exploration", "exploration_settings", "make_adam", "Agent", "make_forward_agent", "make_reset_agent", "make_trigger", "lnt_batch", "reset_tau"]
+from reset_agents import reset_kind
+
+__all__ = ["speed_components", "make_actor", "with_exploration", "exploration_settings", "make_adam", "Agent", "make_forward_agent", "make_reset_agent", "make_trigger", "reset_tau"]
 
 
 def speed_components(cfg: DictConfig) -> accel.Components:
@@ -84,6 +86,7 @@ class Agent:
     optimizer: torch.optim.Optimizer
     targets: SoftUpdate
     model: Any  # the critic or classifier ensemble
+    critic_loss: str = "loss_value"  # its critic's loss entry, minimised beside "loss_actor" ("loss_classifier": RCE)
 
 
 def make_forward_agent(cfg: DictConfig, obs_dim: int, action_spec) -> Agent:
@@ -107,52 +110,19 @@ def make_forward_agent(cfg: DictConfig, obs_dim: int, action_spec) -> Agent:
 
 
 def make_reset_agent(cfg: DictConfig, obs_dim: int, action_spec) -> Agent:
-    """``ours``: RCE on a classifier ensemble with priors; ``lnt``/``lnt_sparse``: DDPG on a Q ensemble."""
-    parts = speed_components(cfg)
+    """The reset agent of ``cfg.algo.name`` (:mod:`reset_agents`): ours, RCE on a classifier ensemble with
+    priors; LNT / LNT-sparse, DDPG on a Q ensemble."""
+    parts, kind = speed_components(cfg), reset_kind(cfg)
     act_dim = action_spec.shape[-1]
     actor = make_actor(obs_dim, action_spec, cfg.hidden_sizes, parts)
-    if cfg.algo.name == "ours":
-        model = parts.ensemble(
-            obs_dim, act_dim, num_members=cfg.algo.num_members, hidden_sizes=tuple(cfg.hidden_sizes),
-            prior_scale=cfg.algo.prior_scale,
-            prior_bias_draw=OmegaConf.select(cfg, "algo.prior_bias_draw", default="fan_in"),
-        )
-        bias = OmegaConf.select(cfg, "algo.initial_logit_bias", default=None)
-        if bias is not None:  # not the paper's: a pessimistic start, before the targets copy the networks
-            with torch.no_grad():
-                getattr(model, f"bias_{model.num_layers - 1}").fill_(float(bias))
-        loss = parts.rce_loss(actor, model, gamma=cfg.gamma, n_steps=cfg.algo.n_steps,
-                       clip_target_values=bool(OmegaConf.select(cfg, "algo.clip_target_values", default=False)))
-        optimizer = make_adam(cfg, [
-            {"params": list(actor.parameters()), "lr": cfg.reset.actor_lr},
-            {"params": list(model.parameters()), "lr": cfg.reset.critic_lr},
-        ])
-    else:
-        model = parts.ensemble(
-            obs_dim, act_dim, num_members=cfg.algo.num_members, hidden_sizes=tuple(cfg.hidden_sizes),
-            prior_scale=cfg.algo.prior_scale, out_keys=["state_action_value"],
-        )
-        loss = parts.ddpg_loss(actor, model, delay_actor=True, delay_value=True)
-        loss.set_keys(reward="lnt_reward")
-        loss.make_value_estimator(gamma=cfg.gamma)
-        bounds = OmegaConf.select(cfg, "algo.reward_bounds", default=None)
-        if bounds is not None:  # not the paper's: TD targets clipped to the values these rewards allow
-            bound_td0_targets(loss, tuple(bounds))
-        optimizer = make_adam(cfg, [
-            {"params": list(loss.actor_network_params.values(True, True)), "lr": cfg.reset.actor_lr},
-            {"params": list(loss.value_network_params.values(True, True)), "lr": cfg.reset.critic_lr},
-        ])
+    model, loss, groups = kind.build(cfg, actor, obs_dim, act_dim, parts)
+    optimizer = make_adam(cfg, groups)
     targets = parts.soft_update(loss, tau=reset_tau(cfg))  # building it copies the networks into their targets
-    if cfg.algo.name == "ours" and releases_targets(cfg):  # the target classifiers' trained part starts as
-        # networks of their own (the same priors); RCE never reads the reset actor's target
-        fresh = parts.ensemble(obs_dim, act_dim, num_members=cfg.algo.num_members,
-                               hidden_sizes=tuple(cfg.hidden_sizes), prior_scale=0.0)
-        bias = OmegaConf.select(cfg, "algo.initial_logit_bias", default=None)
-        if bias is not None:  # the pessimistic start's output bias holds for the targets too
-            with torch.no_grad():
-                getattr(fresh, f"bias_{fresh.num_layers - 1}").fill_(float(bias))
-        draw_target(loss.target_classifier_network_params, fresh)
-    return Agent(actor, loss, optimizer, targets, model)
+    fresh = kind.fresh_target(cfg, obs_dim, act_dim, parts) if releases_targets(cfg) else None
+    if fresh is not None:  # target_init: release
+        network, name = fresh
+        draw_target(getattr(loss, name), network)
+    return Agent(actor, loss, optimizer, targets, model, kind.critic_loss)
 
 
 def releases_targets(cfg: DictConfig) -> bool:
@@ -181,24 +151,7 @@ def make_trigger(cfg: DictConfig, reset_agent: Agent, *, model=None, threshold=N
     """The reset trigger on ``reset_agent``'s model (or ``model``: a batch's runs as one, with ``threshold``
     one per row where they differ). ``rows``: the trigger of an env of N copies each in its own phase
     (:class:`~torchrl_reset.many.RowResetTriggerTransform`, for ``arms=`` and a batch's batched acting)."""
-    model = reset_agent.model if model is None else model
-    trigger = RowResetTriggerTransform if rows else ResetTriggerTransform
-    if cfg.algo.name == "ours":
-        if threshold is None:
-            threshold = float(cfg.task.p_thresh if cfg.algo.threshold is None else cfg.algo.threshold)
-        return trigger(model, threshold)
-    return trigger(
-        model, float(cfg.algo.threshold) if threshold is None else threshold, score="value", reduction="min",
-        model_out_key="state_action_value", score_key="reset_value",
-    )
-
-
-def lnt_batch(sample, algo: DictConfig, num_members: int):
-    """The LNT reset agent's batch: its reward (shaped or sparse) and done flags, one column per ensemble member."""
-    nxt = sample.get("next")
-    reward = nxt.get("reset_reward") if algo.reset_reward == "shaped" else nxt.get("reset_success").float()
-    shape = (*reward.shape[:-1], num_members)
-    nxt.set("lnt_reward", reward.expand(shape))
-    for key in ("done", "terminated"):
-        nxt.set(key, nxt.get(key).expand(shape))
-    return sample
+    kind = reset_kind(cfg)
+    return kind.trigger(reset_agent.model if model is None else model,
+                        kind.threshold(cfg) if threshold is None else threshold,
+                        RowResetTriggerTransform if rows else ResetTriggerTransform)

@@ -30,11 +30,12 @@ from torchrl.envs.utils import ExplorationType, exploration_type
 from agents import reset_tau
 from config_checks import ConfigError, validate
 from learner import NonFiniteLoss
+from reset_agents import reset_kind
 from run_files import RunInterrupted, run_folder_lock, stop_on_signals
 from single_run import TrainingDiverged, build_run, seed_process, set_up_process
 from torchrl_reset import DualCollector
 from torchrl_reset.accel import matmul_products
-from torchrl_reset.many import RunDDPGUpdate, RunRCEUpdate
+from torchrl_reset.many import RunDDPGUpdate
 
 __all__ = ["batch_seeds", "batch_runs", "run_configs", "RunRNG", "BatchedUpdates", "train_batch"]
 
@@ -204,12 +205,8 @@ class BatchedUpdates:
         self.runs = runs
         self.forward = RunDDPGUpdate([r.forward.loss for r in runs], [r.forward.optimizer for r in runs],
                                      gamma=float(cfg.gamma), tau=float(cfg.tau))
-        tau = reset_tau(cfg)
-        if cfg.algo.name == "ours":
-            self.reset = RunRCEUpdate([r.reset.loss for r in runs], [r.reset.optimizer for r in runs], tau=tau)
-        else:
-            self.reset = RunDDPGUpdate([r.reset.loss for r in runs], [r.reset.optimizer for r in runs],
-                                       gamma=float(cfg.gamma), tau=tau, reward_key="lnt_reward")
+        self.reset = reset_kind(cfg).batched_update([r.reset.loss for r in runs], [r.reset.optimizer for r in runs],
+                                                    cfg, reset_tau(cfg))
         self.precision = runs[0].matmul_precision
         self.seconds = 0.0  # spent in update calls (read by the loop's timing)
         for s, run in enumerate(runs):  # a checkpoint holds the run's own optimizer state, as a run alone's
@@ -446,9 +443,10 @@ def _train_batch(configs: list[DictConfig]) -> list[dict]:
                 requests = {"forward": {}, "reset": {}}
                 for s, batch, phase in stepped:
                     with streams[s].active():
-                        sample = runs[s].learner.store(batch, phase)  # its sample, from its own stream
-                    if sample is not None:
-                        requests[phase][s] = sample
+                        learner = runs[s].learner
+                        learner.store(batch, phase)
+                        if learner.updating(phase):
+                            requests[phase][s] = learner.sample(phase)  # its sample, from its own stream
                 for phase in ("forward", "reset"):  # lines 16 / 23 of every run, one call per agent type
                     updates.apply(phase, requests[phase])
                 for s, batch, phase in stepped:

@@ -9,44 +9,30 @@ from torchrl.data import LazyTensorStorage, ReplayBuffer
 
 from agents import Agent
 from config_checks import arm_count
-from torchrl_reset import EpisodeWindowSampler, NStepStateTransform
+from reset_agents import reset_kind
+from torchrl_reset import EpisodeWindowSampler
 
-__all__ = ["make_buffers", "buffer_keys", "ArmReplay", "sampler_fallbacks", "fallback_counts", "restore_fallbacks"]
+__all__ = ["make_buffers", "buffer_keys", "ArmReplay", "fallback_counts", "restore_fallbacks"]
 
 
 def make_buffers(cfg: DictConfig) -> tuple[ReplayBuffer, ReplayBuffer | ArmReplay]:
     """The forward agent's buffer (with ``forward.sampling: episode``, the release's episode-first sampler
-    with windows of one step) and the reset agent's (ours: with the n-step transform and the release's
-    episode-first sampler). With ``arms``, ours' reset buffer is one per arm, sampled as one (:class:`ArmReplay`):
-    the n-step windows need each arm's steps in time order."""
+    with windows of one step) and the reset agent's (:meth:`~reset_agents.ResetAgentKind.replay`; ours': the
+    n-step transform and the release's episode-first sampler). With ``arms``, ours' reset buffer is one per
+    arm, sampled as one (:class:`ArmReplay`): the n-step windows need each arm's steps in time order."""
     episodes_first = OmegaConf.select(cfg, "forward.sampling", default="transition") == "episode"
     forward_rb = ReplayBuffer(storage=LazyTensorStorage(cfg.forward.buffer_size), batch_size=cfg.forward.batch_size,
                               sampler=EpisodeWindowSampler(1) if episodes_first else None)
-    ours = cfg.algo.name == "ours"
-    episodes = ours and OmegaConf.select(cfg, "algo.nstep_sampling", default="episode") == "episode"
-    arms = arm_count(cfg)
-
-    def reset_buffer(size: int, batch_size: int | None = cfg.reset.batch_size) -> ReplayBuffer:
-        return ReplayBuffer(storage=LazyTensorStorage(size), batch_size=batch_size,
-                            transform=NStepStateTransform(cfg.algo.n_steps) if ours else None,
-                            sampler=EpisodeWindowSampler(cfg.algo.n_steps) if episodes else None)
-
-    if arms is None or not ours:  # LNT's rows are single transitions: one buffer serves every arm
-        return forward_rb, reset_buffer(cfg.reset.buffer_size)
+    kind, arms = reset_kind(cfg), arm_count(cfg)
+    if arms is None or not kind.time_ordered_replay:  # LNT's rows are single transitions: one buffer serves every arm
+        return forward_rb, kind.replay(cfg, int(cfg.reset.buffer_size), cfg.reset.batch_size)
     size = -(-int(cfg.reset.buffer_size) // arms)  # the arms share the capacity of one run's buffer
-    return forward_rb, ArmReplay([reset_buffer(size, None) for _ in range(arms)], batch_size=cfg.reset.batch_size)
+    return forward_rb, ArmReplay([kind.replay(cfg, size, None) for _ in range(arms)], batch_size=cfg.reset.batch_size)
 
 
 def fallback_counts(rb) -> list[int | None]:
     """Each buffer's sampler fallback count (one per arm of an :class:`ArmReplay`); None without that sampler."""
     return [getattr(b.sampler, "fallbacks", None) for b in getattr(rb, "buffers", [rb])]
-
-
-def sampler_fallbacks(rb) -> int | None:
-    """How many samples fell back to uniform rows because no episode held a whole n-step window yet
-    (:class:`~torchrl_reset.EpisodeWindowSampler`), summed over an :class:`ArmReplay`'s arms; None without that sampler."""
-    counts = fallback_counts(rb)
-    return None if None in counts else sum(counts)
 
 
 def restore_fallbacks(rb, counts: list[int | None]) -> None:
@@ -87,15 +73,19 @@ class ArmReplay:
                 raise IndexError(f"a row of arm {arm} for an ArmReplay of {len(self.buffers)} arms.")
             self.buffers[arm].extend(data[arms == arm])
 
-    def sample(self, batch_size: int | None = None):
+    def sample(self, batch_size: int | None = None, return_info: bool = False):
+        """B rows over the arms; with ``return_info``, also ``{"fallback": bool}``: whether an arm's
+        :class:`~torchrl_reset.EpisodeWindowSampler` fell back to uniform rows for its share."""
         size = self.batch_size if batch_size is None else int(batch_size)
         if len(self.buffers) == 1:
-            return self.buffers[0].sample(size)
+            return self.buffers[0].sample(size, return_info=return_info)
         held = torch.tensor([len(b) for b in self.buffers], dtype=torch.float64)
         if not held.sum():
             raise RuntimeError("ArmReplay: cannot sample from empty buffers.")
         shares = torch.bincount(torch.multinomial(held, size, replacement=True), minlength=len(self.buffers))
-        return torch.cat([b.sample(int(k)) for b, k in zip(self.buffers, shares.tolist()) if k], 0)
+        parts = [b.sample(int(k), return_info=True) for b, k in zip(self.buffers, shares.tolist()) if k]
+        data = torch.cat([part for part, _ in parts], 0)
+        return (data, {"fallback": any(info.get("fallback", False) for _, info in parts)}) if return_info else data
 
     def dumps(self, path) -> None:
         Path(path).mkdir(parents=True, exist_ok=True)
@@ -110,24 +100,15 @@ class ArmReplay:
 
 
 def buffer_keys(cfg: DictConfig, forward: Agent, reset: Agent) -> tuple[list, list]:
-    """The entries each replay buffer keeps: what its loss (and, for ours, the n-step transform) reads.
+    """The entries each replay buffer keeps: what its loss reads (``loss.in_keys``), its end flags and what
+    its sampler or transform reads (:meth:`~reset_agents.ResetAgentKind.buffer_keys`).
 
     A collected step carries about 24 entries (flags, scores, the trigger's outputs, phase tags);
     the forward buffer needs 6 and the reset buffer 6 to 8. Writing, sampling and checkpointing
     fewer columns is faster and smaller.
     """
-    def nested(key) -> tuple:
-        return (key,) if isinstance(key, str) else tuple(key)
-
-    states = [nested(key) for key in (*reset.model.in_keys[:-1], *reset.actor.in_keys)]
-    reset_keys = [*states, *[("next", *key) for key in states], ("action",), ("next", "done"), ("next", "terminated")]
-    if cfg.algo.name == "ours":
-        reset_keys.append(("collector", "traj_ids"))  # NStepStateTransform's trajectory boundaries
-        if arm_count(cfg) is not None:
-            reset_keys.append(("collector", "env_ids"))  # ArmReplay's routing
-    else:
-        reset_keys += [("next", "reset_reward"), ("next", "reset_success")]  # lnt_batch's rewards
-    forward_keys = [nested(key) for key in forward.loss.in_keys]
+    forward_keys = [(key,) if isinstance(key, str) else tuple(key) for key in forward.loss.in_keys]
     if OmegaConf.select(cfg, "forward.sampling", default="transition") == "episode":
         forward_keys.append(("collector", "traj_ids"))  # the episode-first sampler's episodes
+    reset_keys = reset_kind(cfg).buffer_keys(cfg, reset, arms=arm_count(cfg) is not None)
     return list(dict.fromkeys(forward_keys)), list(dict.fromkeys(reset_keys))

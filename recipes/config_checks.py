@@ -10,7 +10,7 @@ from pathlib import Path
 from omegaconf import DictConfig, OmegaConf
 
 from torchrl_reset.accel import MATMUL_PRECISIONS
-from torchrl_reset.ensemble import PRIOR_BIAS_DRAWS
+from reset_agents import KINDS, reset_kind
 from run_files import Checkpoints, no_intact_checkpoint
 from torchrl_reset_envs import TASKS
 
@@ -18,7 +18,7 @@ __all__ = ["ALGOS", "ConfigError", "arm_count", "reset_horizon", "validate", "sh
            "recipe_settings", "unknown_settings"]
 
 
-ALGOS = ("ours", "lnt", "lnt_sparse")
+ALGOS = tuple(KINDS)  # the kinds of reset agent (reset_agents.py)
 CONF = Path(__file__).resolve().parent / "conf"
 
 
@@ -47,10 +47,10 @@ def validate(cfg: DictConfig) -> None:
         problems.append(f"unknown task {cfg.task.name!r}; known: {', '.join(TASKS)}")
     if cfg.algo.name not in ALGOS:
         problems.append(f"unknown algorithm {cfg.algo.name!r}; known: {', '.join(ALGOS)}")
+    else:
+        problems += reset_kind(cfg).check(cfg)  # the keys only that kind of reset agent reads
     if not 0.0 < float(cfg.task.p_thresh) < 1.0:
         problems.append(f"task.p_thresh must lie in (0, 1), got {cfg.task.p_thresh}")
-    if cfg.algo.name == "ours" and cfg.algo.threshold is not None and not 0.0 < float(cfg.algo.threshold) < 1.0:
-        problems.append(f"algo.threshold (a success probability) must lie in (0, 1), got {cfg.algo.threshold}")
     h_f = int(cfg.task.forward_horizon)
     if h_f < 1:
         problems.append(f"task.forward_horizon (H_f) must be >= 1, got {h_f}")
@@ -68,18 +68,6 @@ def validate(cfg: DictConfig) -> None:
     precision = OmegaConf.select(cfg, "speed.matmul_precision", default="ieee")
     if precision not in MATMUL_PRECISIONS:
         problems.append(f"speed.matmul_precision must be one of {', '.join(MATMUL_PRECISIONS)}; got {precision!r}")
-    bounds = OmegaConf.select(cfg, "algo.reward_bounds", default=None)
-    if bounds is not None:
-        if cfg.algo.name == "ours":
-            problems.append("algo.reward_bounds clips LNT's TD targets; ours has no reward (its labels: "
-                            "algo.clip_target_values)")
-        elif (not OmegaConf.is_list(bounds) or len(bounds) != 2
-              or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in bounds)
-              or not bounds[0] < bounds[1]):
-            problems.append(f"algo.reward_bounds must be [low, high] with low < high, got {bounds!r}")
-    sampling = OmegaConf.select(cfg, "algo.nstep_sampling", default="episode")
-    if cfg.algo.name == "ours" and sampling not in ("episode", "transition"):
-        problems.append(f"algo.nstep_sampling must be episode or transition, got {sampling!r}")
     for flag in ("speed.accelerate", "speed.fused_adam", "speed.retain_memory", "speed.batched_acting"):
         value = OmegaConf.select(cfg, flag, default=True)
         if not isinstance(value, bool):
@@ -93,9 +81,6 @@ def validate(cfg: DictConfig) -> None:
     order = OmegaConf.select(cfg, "update_order", default="joint")
     if order not in ("release", "joint"):
         problems.append(f"update_order must be release or joint, got {order!r}")
-    draw = OmegaConf.select(cfg, "algo.prior_bias_draw", default="fan_in")
-    if cfg.algo.name == "ours" and draw not in PRIOR_BIAS_DRAWS:
-        problems.append(f"algo.prior_bias_draw must be one of {', '.join(PRIOR_BIAS_DRAWS)}, got {draw!r}")
     sampling = OmegaConf.select(cfg, "forward.sampling", default="transition")
     if sampling not in ("episode", "transition"):
         problems.append(f"forward.sampling must be episode or transition, got {sampling!r}")

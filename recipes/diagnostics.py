@@ -13,7 +13,8 @@ import math
 import torch
 from tensordict import TensorDict
 
-from torchrl_reset import reduce_members, success_probability
+from reset_agents import ResetAgentKind
+from torchrl_reset import reduce_members
 
 DIAGNOSTIC_FIELDS = [
     "frames", "trigger_score_mean", "trigger_score_min", "trigger_below_share", "trigger_scored_steps",
@@ -55,7 +56,7 @@ class TriggerScores:
 
 
 @torch.no_grad()
-def probe_classifier(algo: str, model, reset_actor, examples, forward_rb, reset_rb, threshold: float) -> dict:
+def probe_classifier(kind: ResetAgentKind, model, reset_actor, examples, forward_rb, reset_rb, threshold: float) -> dict:
     """The reset agent's model on examples (with the reset policy's action), reset replay (the taken
     action) and forward replay (the forward agent's taken action, as the trigger sees it).
 
@@ -67,13 +68,10 @@ def probe_classifier(algo: str, model, reset_actor, examples, forward_rb, reset_
     device = next(model.parameters()).device  # the buffers are on the CPU, the networks on cfg.device
 
     def scores(data: TensorDict) -> tuple[torch.Tensor, torch.Tensor]:
-        values = model(data.select(*model.in_keys).clone(False)).get(model.out_keys[0])
-        if algo == "ours":
-            return torch.sigmoid(values), success_probability(values)
-        return torch.full_like(values, math.nan), values
+        return kind.member_scores(model(data.select(*model.in_keys).clone(False)).get(model.out_keys[0]))
 
     def reduce(p: torch.Tensor) -> torch.Tensor:  # as the trigger reduces its members
-        return reduce_members(p, "mean" if algo == "ours" else "min")
+        return reduce_members(p, kind.reduction)
 
     if len(examples):
         sample = examples.sample(reset_rb.batch_size if len(reset_rb) else 256).to(device)

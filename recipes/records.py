@@ -19,6 +19,7 @@ from omegaconf import DictConfig, OmegaConf
 from tqdm import tqdm
 
 from buffers import fallback_counts, restore_fallbacks
+from reset_agents import reset_kind
 from diagnostics import DIAGNOSTIC_FIELDS, RESET_FIELDS, ResetDistances, TriggerScores, probe_classifier
 from run_files import CsvTable, code_version, processor_name, reset_outcomes_by_quarter
 from task_envs import safety_counters
@@ -145,7 +146,7 @@ class RunRecord:
         reset_rb = learner.reset_rb
         counts = fallback_counts(reset_rb)
         with torch.random.fork_rng(devices=[]):  # the probe's samples leave training's random stream as it was
-            probe = probe_classifier(self.cfg.algo.name, learner.reset.model, learner.reset.actor,
+            probe = probe_classifier(reset_kind(self.cfg), learner.reset.model, learner.reset.actor,
                                      self.collector.example_buffer, learner.forward_rb, reset_rb, self.trigger.threshold)
         restore_fallbacks(reset_rb, counts)  # the probe's own sample does not count
         fallbacks = "" if None in counts else sum(counts)
@@ -166,7 +167,7 @@ class RunRecord:
         summary = {
             "task": cfg.task.name, "algo": cfg.algo.name, "seed": int(cfg.seed),
             # the threshold the trigger used (ours: algo.threshold when set, else the task's p_thresh)
-            "p_thresh": float(self.trigger.threshold) if cfg.algo.name == "ours" else float(cfg.task.p_thresh),
+            "p_thresh": float(self.trigger.threshold) if reset_kind(cfg).scores_probability else float(cfg.task.p_thresh),
             "steps": collector.frames, "finished": finished,
             "average_return": float(np.mean(returns)) if returns else None,
             "manual_resets": c["manual_resets"],

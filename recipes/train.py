@@ -29,10 +29,12 @@ import sys
 from pathlib import Path
 
 import hydra
+import torch
 from omegaconf import DictConfig
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
+from agents import Agent  # noqa: E402
 from batch import batch_runs, run_configs, train_batch  # noqa: E402
 from config_checks import ConfigError, arm_count, validate  # noqa: E402
 from learner import NonFiniteLoss  # noqa: E402
@@ -59,7 +61,7 @@ def train(cfg: DictConfig) -> dict:
 def _train(cfg: DictConfig) -> dict:
     validate(cfg)
     run = build_run(cfg, set_up_process(cfg))
-    collector, arms = run.collector, arm_count(cfg)
+    collector, learner, arms = run.collector, run.learner, arm_count(cfg)
 
     # Algorithm 1, lines 5-28: each batch is one action of a forward or a reset episode
     stopped_by = None  # the signal (SIGINT, SIGTERM) that ends the run after its current step
@@ -70,9 +72,16 @@ def _train(cfg: DictConfig) -> dict:
                 # one step; with N arms, the steps of one iteration (up to one per arm), by phase
                 parts = split_phases(batch).items() if arms else [(DualCollector.phase_of(batch), batch)]
                 for phase, part in parts:
-                    run.learner.observe(part, phase)  # lines 16 / 23: store the transition, update that agent
+                    agent = learner.agents[phase]  # pi_f and Q, or pi_r and the C_i (LNT: the Q_i)
+                    learner.store(part, phase)  # lines 16 / 23: save the transition in that phase's buffer
+                    # ... and update that agent, once per step taken, past its heat-up
+                    for _ in range(part.numel() if learner.updating(phase) else 0):
+                        sample = learner.sample(phase)  # replay rows (ours: + success examples; LNT: + reward)
+                        with learner.timed(phase):
+                            losses = update(agent, sample, learner.losses[phase], release_order=learner.release_order)
+                        learner.record_losses(phase, losses)
                     run.record.step(part, phase)
-                run.after_frames(collector.frames - batch.numel())
+                run.after_frames(collector.frames - batch.numel())  # evaluation, log row, checkpoint when due
                 if stop_requested:
                     stopped_by = stop_requested[0]
                     log.warning("%s at step %d: checkpointing", signal.Signals(stopped_by).name, collector.frames)
@@ -96,6 +105,39 @@ def _train(cfg: DictConfig) -> dict:
         raise RunInterrupted(stopped_by, [summary], f"{signal.Signals(stopped_by).name} stopped the run at step "
                                                     f"{collector.frames}, checkpointed there")
     return summary
+
+
+def update(agent: Agent, sample, loss_module, *, release_order: bool) -> dict[str, float]:
+    """One update of ``agent`` (DDPG, or RCE / LNT for the reset agent) on ``sample``; returns its losses
+    (``loss_actor`` and the critic's, ``agent.critic_loss``: ``loss_value`` or ``loss_classifier``).
+
+    ``release_order`` (``update_order: release``, the authors' release, docs/method.md section 9): a step of
+    the critic (classifiers) on its loss, then a step of the actor on its loss computed with the updated
+    critic, on as many rows drawn with replacement from the critic's batch. Otherwise one step on the sum of
+    both losses computed together by ``loss_module`` (the agent's loss, or its compiled form)."""
+    if release_order:
+        critic_loss, _ = getattr(agent.loss, agent.critic_loss)(sample)
+        optimizer_step(agent, critic_loss, agent.critic_loss)
+        rows = torch.randint(sample.shape[0], (sample.shape[0],), device=sample.device)
+        actor_loss, _ = agent.loss.loss_actor(sample[rows])
+        optimizer_step(agent, actor_loss, "loss_actor")
+        losses = {"loss_actor": actor_loss, agent.critic_loss: critic_loss}
+    else:
+        out = loss_module(sample)
+        losses = {"loss_actor": out["loss_actor"], agent.critic_loss: out[agent.critic_loss]}
+        optimizer_step(agent, losses["loss_actor"] + losses[agent.critic_loss], *losses, values=losses)
+    agent.targets.step()  # the soft target update: target <- (1 - tau) target + tau network
+    return {name: float(value.detach()) for name, value in losses.items()}
+
+
+def optimizer_step(agent: Agent, loss: torch.Tensor, *names: str, values: dict | None = None) -> None:
+    """Backward and one optimizer step on ``loss``: only the parameters it reaches have gradients (the
+    others' are None after ``zero_grad``), so Adam moves only those. A non-finite loss changes nothing."""
+    if not torch.isfinite(loss):
+        raise NonFiniteLoss(", ".join(f"{n}={float((values or {n: loss})[n].detach())}" for n in names))
+    agent.optimizer.zero_grad()
+    loss.backward()
+    agent.optimizer.step()
 
 
 # Hydra makes its run folder and writes its own files there (.hydra/, its log) before the recipe sees the

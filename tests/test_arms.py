@@ -15,7 +15,7 @@ sys.path.insert(0, str(RECIPES))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import train  # noqa: E402
-from buffers import ArmReplay, fallback_counts, sampler_fallbacks  # noqa: E402
+from buffers import ArmReplay, fallback_counts  # noqa: E402
 from config_checks import ConfigError  # noqa: E402
 from test_recipes import config, rows  # noqa: E402
 
@@ -89,12 +89,27 @@ def test_fallbacks_are_counted_over_the_arms_and_saved_with_the_buffers(tmp_path
     rb.extend(episode(0, 0.0, 2, traj=1))  # no arm holds a whole 3-step window yet: uniform rows
     rb.extend(episode(1, 100.0, 2, traj=2))
     rb.sample()
-    assert fallback_counts(rb) == [1, 1] and sampler_fallbacks(rb) == 2
+    assert fallback_counts(rb) == [1, 1]
     rb.dumps(tmp_path)
     again = arm_replay(n=3, batch_size=8)
     again.loads(tmp_path)
-    assert len(again) == 4 and sampler_fallbacks(again) == 2
+    assert len(again) == 4 and fallback_counts(again) == [1, 1]
     assert torch.equal(again.buffers[1][:]["observation"], rb.buffers[1][:]["observation"])
+
+
+def test_a_sample_says_whether_an_arm_fell_back_to_uniform_rows():
+    """The recipe reads the one-step fallback from the sample's info (the reset kind marks the batch)."""
+    rb = arm_replay(n=3, batch_size=8)
+    rb.extend(episode(0, 0.0, 2, traj=1))  # two steps: no whole 3-step window in either arm
+    rb.extend(episode(1, 100.0, 2, traj=2))
+    _, info = rb.sample(return_info=True)
+    assert info == {"fallback": True}
+    rb.extend(episode(0, 10.0, 5, traj=3))  # now each arm holds a 5-step episode: windows exist
+    rb.extend(episode(1, 110.0, 5, traj=4))
+    before = fallback_counts(rb)
+    assert [rb.sample(return_info=True)[1]["fallback"] for _ in range(20)] == [False] * 20
+    assert fallback_counts(rb) == before
+    assert isinstance(rb.sample(), torch.Tensor) is False and len(rb.sample()) == 8  # without info: the rows alone
 
 
 def test_rows_without_their_arm_or_of_an_unknown_arm_are_refused():

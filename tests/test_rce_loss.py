@@ -271,6 +271,22 @@ def test_missing_keys_get_a_clear_error():
         loss(data.exclude(("next", "observation")))
 
 
+def test_in_keys_name_every_entry_the_loss_reads_and_follow_set_keys():
+    """As torchrl's losses: what a replay buffer must keep. The actor and the classifier read "observation"
+    (and the classifier the action), so the loss reads it at the root and in next, nstep and example."""
+    loss, _, _, sample = _random_setup()
+    assert loss.in_keys == ["observation", "action", ("next", "observation"), ("nstep", "observation"),
+                            ("example", "observation"), "one_step"]
+    data = sample()
+    data.set("unread", torch.zeros(data.shape[0]))
+    kept = data.select(*loss.in_keys, strict=False)  # one_step is optional: absent here
+    assert "unread" not in kept.keys()
+    torch.testing.assert_close(loss(kept)["loss_classifier"], loss(data)["loss_classifier"])
+    loss.set_keys(example_state="success_examples", one_step="short_window")
+    assert ("success_examples", "observation") in loss.in_keys and "short_window" in loss.in_keys
+    assert ("example", "observation") not in loss.in_keys
+
+
 def test_set_keys_renames_the_example_entry():
     loss, _, _, sample = _random_setup()
     data = sample()

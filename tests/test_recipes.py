@@ -22,7 +22,8 @@ sys.path.insert(0, str(RECIPES))
 import single_run  # noqa: E402
 import train  # noqa: E402
 from torchrl_reset_envs import make_env  # noqa: E402
-from agents import lnt_batch, make_actor, make_reset_agent  # noqa: E402
+from agents import make_actor, make_reset_agent  # noqa: E402
+from reset_agents import lnt_batch  # noqa: E402
 from buffers import make_buffers  # noqa: E402
 from run_files import Checkpoints, processor_name  # noqa: E402
 from task_envs import UpdateBudget, realtime_env  # noqa: E402
@@ -474,9 +475,9 @@ def test_the_summary_names_the_processor_kind_a_run_reproduces_on(tmp_path):
 
 @pytest.mark.parametrize("release_order", [True, False])
 def test_release_order_steps_the_critic_then_the_actor_with_it_on_rows_drawn_again(tmp_path, release_order):
-    """update_order=release: a critic step, then an actor step whose loss uses the updated classifiers, on
+    """update_order=release (train.py's update): a critic step, then an actor step whose loss uses the updated classifiers, on
     B rows drawn with replacement from the batch. Worked out here with plain SGD steps, by hand."""
-    from learner import update_agent
+    from train import update
 
     cfg = config(tmp_path, "algo=ours")
     spec = make_env("peg_insertion_insert").action_spec
@@ -508,7 +509,7 @@ def test_release_order_steps_the_critic_then_the_actor_with_it_on_rows_drawn_aga
 
     target_before = agent.loss.target_classifier_network_params.get("weight_0").clone()
     torch.manual_seed(7)
-    update_agent(agent, sample.clone(), ("loss_actor", "loss_classifier"), release_order=release_order)
+    update(agent, sample.clone(), agent.loss, release_order=release_order)
     for p, e in zip(actor_params, expected_actor):
         torch.testing.assert_close(p.detach(), e, rtol=1e-5, atol=1e-6)
     # the soft target update follows both steps: target <- (1 - tau) target + tau network
@@ -624,3 +625,27 @@ def test_keys_the_recipe_does_not_define_are_refused_and_those_its_groups_add_ar
     validate(config(tmp_path, "task=peg_insertion_insert", "+task.exploration.sigma=0.1"))  # cliff_walker's key
     validate(config(tmp_path, "task=ur3_peg", "+env.acceleration=1.0"))  # env holds the env's own arguments
     validate(config(tmp_path, "preset=quick", "algo=lnt", "algo.reward_bounds=[0,1]"))
+
+
+@pytest.mark.parametrize("algo, own", [
+    ("ours", {("collector", "traj_ids")}),  # the n-step transform's trajectory boundaries
+    ("lnt", {("next", "reset_reward"), ("next", "reset_success")}),  # what LNT's reward is made from
+])
+def test_each_replay_buffer_keeps_what_its_agent_reads_of_a_collected_step(tmp_path, algo, own):
+    """The buffers keep the entries of a collected step that the losses list in ``in_keys`` (the state, the
+    action, the next state, the end flags) and what the reset agent's kind adds; none of the trigger's,
+    collector's or env's other entries. Listed here by hand from docs/method.md sections 3 and 6."""
+    cfg = config(tmp_path, f"algo={algo}", "task=cliff_cheetah", "total_steps=60")
+    run = single_run.build_run(cfg, "ieee")
+    try:
+        step = next(iter(run.collector))
+        collected = {k if isinstance(k, tuple) else (k,) for k in step.keys(True, True)}
+        common = {("observation",), ("action",), ("next", "observation"), ("next", "done"), ("next", "terminated")}
+        assert len(collected) > 15  # the step carries many more entries than the buffers keep
+        kept = {k if isinstance(k, tuple) else (k,) for k in step.select(*run.learner.keys["reset"], strict=False).keys(True, True)}
+        assert kept == common | own
+        kept = {k if isinstance(k, tuple) else (k,) for k in step.select(*run.learner.keys["forward"], strict=False).keys(True, True)}
+        assert kept == common | {("next", "reward"), ("collector", "traj_ids")}  # forward.sampling: episode
+    finally:
+        run.collector.shutdown()
+        run.eval_env.close()

@@ -19,7 +19,8 @@ from tensordict import TensorDict
 RECIPES = Path(__file__).resolve().parents[1] / "recipes"
 sys.path.insert(0, str(RECIPES))
 
-from agents import lnt_batch, make_forward_agent, make_reset_agent  # noqa: E402
+from agents import make_forward_agent, make_reset_agent  # noqa: E402
+from reset_agents import lnt_batch  # noqa: E402
 
 from torchrl_reset.many import RunDDPGUpdate, RunRCEUpdate, bind_runs  # noqa: E402
 

@@ -327,6 +327,17 @@ class RCELoss(LossModule):
         """The state entries read at the root and in the next, n-step and example sub-tensordicts."""
         return list(self._state_keys)
 
+    @property
+    def in_keys(self) -> list[NestedKey]:
+        """Every entry the loss reads, as torchrl's losses list theirs (``DDPGLoss.in_keys``): the state keys
+        at the root and under the next, n-step and example sub-tensordicts, the action and the optional
+        ``one_step`` flag. A replay buffer keeps the ones a collected step has (``select(*in_keys,
+        strict=False)``); the n-step states and the examples are added when a batch is sampled."""
+        keys = self.tensor_keys
+        subs = (keys.next_state, keys.nstep_state, keys.example_state)
+        return [*self._state_keys, keys.action,
+                *[(*_as_tuple(sub), *_as_tuple(key)) for sub in subs for key in self._state_keys], keys.one_step]
+
     # -- reading the batch ------------------------------------------------------------------------
 
     def _require(self, tensordict: TensorDictBase, sub: NestedKey | None, what: str) -> TensorDictBase:

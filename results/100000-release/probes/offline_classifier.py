@@ -15,7 +15,7 @@ the release's episode-window sampler), and the start state is the only success e
 each seed and each draw of the priors' biases (``xavier``: the release's; ``fan_in``: this project's
 earlier one), a fresh reset agent (the recipe's ``make_reset_agent``, at the recipe's settings: its
 target classifiers start as in the release, unless ``--targets copy``) takes ``--updates`` updates with
-the recipe's update (``update_agent``: classifier step, then actor step with the updated classifiers,
+the recipe's update (``train.update``: classifier step, then actor step with the updated classifiers,
 then the soft target update). Every ``--every`` updates it records, on every replay row ``(s_t, a_t)``, the
 trigger's score (the ensemble mean of ``p_i = exp(min(logit_i, 0))``) and the share of rows below
 p_thresh, and the score at the start state with the forward actor's action there (what the trigger
@@ -33,7 +33,8 @@ ROOT = Path(__file__).resolve().parents[3]
 sys.path.insert(0, str(ROOT / "recipes"))
 from agents import make_reset_agent  # noqa: E402
 from buffers import make_buffers  # noqa: E402
-from learner import make_collector, update_agent  # noqa: E402
+from learner import make_collector  # noqa: E402
+from train import update  # noqa: E402
 from agents import make_forward_agent  # noqa: E402
 from task_envs import make_task_env, task_dimensions  # noqa: E402
 
@@ -126,7 +127,7 @@ def train_and_watch(cfg, episodes, examples, forward_actor, seed, draw, updates,
     for step in range(1, updates + 1):
         sample = replay.sample()
         sample.set("example", examples.sample(sample.shape[0]))
-        update_agent(agent, sample, ("loss_actor", "loss_classifier"), release_order=True)  # the recipe's update
+        update(agent, sample, agent.loss, release_order=True)  # the recipe's update
         if step % every == 0:
             watch(step)
     return out

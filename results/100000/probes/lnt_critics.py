@@ -16,7 +16,8 @@ import torch
 from omegaconf import OmegaConf
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[3] / "recipes"))
-from agents import lnt_batch, make_reset_agent  # noqa: E402
+from agents import make_reset_agent  # noqa: E402
+from reset_agents import lnt_batch  # noqa: E402
 from buffers import make_buffers  # noqa: E402
 from task_envs import task_dimensions  # noqa: E402
 

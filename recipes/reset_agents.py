@@ -1,0 +1,249 @@
+"""The reset agent, described once per kind: ours (RCE on a classifier ensemble with priors, trained from
+examples) and LNT / LNT-sparse (DDPG on a Q ensemble, trained from a reward).
+
+Everything in the recipe that differs between the two kinds is a method of :class:`ResetAgentKind`: the
+loss and its networks, what the replay buffer keeps and how it is sampled, how a sample is completed
+before the update (success examples, or the reward), the trigger's score and threshold, the batched update
+of a ``seeds=`` batch, and the configuration keys that only one kind reads. The rest of the recipe asks
+:func:`reset_kind` and never compares the algorithm's name.
+"""
+from __future__ import annotations
+
+import math
+
+import torch
+from omegaconf import DictConfig, OmegaConf
+from torch import nn
+from torchrl.data import LazyTensorStorage, ReplayBuffer
+
+from torchrl_reset import EpisodeWindowSampler, NStepStateTransform, ResetTriggerTransform, success_probability
+from torchrl_reset.ensemble import PRIOR_BIAS_DRAWS
+from torchrl_reset.many import RunDDPGUpdate, RunRCEUpdate
+from torchrl_reset.td_bounds import bound_td0_targets
+
+__all__ = ["ResetAgentKind", "RCEKind", "LNTKind", "reset_kind", "lnt_batch", "END_FLAGS"]
+
+#: the episode's end flags, kept in every replay buffer (the losses' and the n-step transform's)
+END_FLAGS = [("next", "done"), ("next", "terminated")]
+
+
+def _nested(key) -> tuple:
+    return (key,) if isinstance(key, str) else tuple(key)
+
+
+class ResetAgentKind:
+    """What one kind of reset agent is in this recipe (see the module's docstring)."""
+
+    name: str
+    #: the loss entry of its critic (the classifiers' or the Q-functions'), minimised beside ``loss_actor``
+    critic_loss: str
+    #: whether its trigger score is a success probability (ours) rather than a value (LNT's Q)
+    scores_probability: bool
+    #: whether its replay needs each environment's steps in time order (an n-step transform): with ``arms``,
+    #: one buffer per arm (:class:`~buffers.ArmReplay`)
+    time_ordered_replay: bool
+    #: how its trigger reduces the members' scores
+    reduction: str
+
+    def build(self, cfg: DictConfig, actor, obs_dim: int, act_dim: int, parts):
+        """Its model (the ensemble) and loss module on ``actor``; returns ``(model, loss, param_groups)``."""
+        raise NotImplementedError
+
+    def fresh_target(self, cfg: DictConfig, obs_dim: int, act_dim: int, parts):
+        """With ``target_init: release``, a newly drawn network whose parameters its loss's critic targets take
+        (and the name of those targets in the loss); None where its targets stay copies."""
+        return None
+
+    def replay(self, cfg: DictConfig, size: int, batch_size: int | None) -> ReplayBuffer:
+        """Its replay buffer of ``size`` rows."""
+        raise NotImplementedError
+
+    def buffer_keys(self, cfg: DictConfig, agent, *, arms: bool) -> list[tuple]:
+        """The entries its replay buffer keeps: what its loss reads (``loss.in_keys``; entries the sample gets
+        later, such as the success examples, are not in a collected step and are skipped), its end flags,
+        and what its buffer's own transform or routing reads."""
+        raise NotImplementedError
+
+    def prepare(self, sample, info: dict, examples, cfg: DictConfig):
+        """Completes a replay sample for the loss (``info``: what the buffer's sampler returned)."""
+        raise NotImplementedError
+
+    def threshold(self, cfg: DictConfig) -> float:
+        """The trigger's threshold for this run."""
+        raise NotImplementedError
+
+    def trigger(self, model, threshold, trigger_class=ResetTriggerTransform) -> ResetTriggerTransform:
+        """The reset trigger on ``model``."""
+        raise NotImplementedError
+
+    def member_scores(self, values: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The model's outputs as ``(C, score)`` per member (diagnostics: C is NaN where it has no classifier)."""
+        raise NotImplementedError
+
+    def batched_update(self, losses, optimizers, cfg: DictConfig, tau: float):
+        """The run-batched update of a ``seeds=`` batch over the runs' loss modules."""
+        raise NotImplementedError
+
+    def check(self, cfg: DictConfig) -> list[str]:
+        """Problems with the configuration keys this kind reads (or must not be given)."""
+        return []
+
+
+class RCEKind(ResetAgentKind):
+    """Ours: recursive classification of examples (RCE) on K classifiers with randomized priors."""
+
+    name, critic_loss, scores_probability, time_ordered_replay, reduction = "ours", "loss_classifier", True, True, "mean"
+
+    def build(self, cfg, actor, obs_dim, act_dim, parts):
+        model = parts.ensemble(
+            obs_dim, act_dim, num_members=cfg.algo.num_members, hidden_sizes=tuple(cfg.hidden_sizes),
+            prior_scale=cfg.algo.prior_scale,
+            prior_bias_draw=OmegaConf.select(cfg, "algo.prior_bias_draw", default="fan_in"),
+        )
+        _pessimistic_start(cfg, model)  # not the paper's, when set; before the targets copy the networks
+        loss = parts.rce_loss(actor, model, gamma=cfg.gamma, n_steps=cfg.algo.n_steps,
+                              clip_target_values=bool(OmegaConf.select(cfg, "algo.clip_target_values", default=False)))
+        groups = [{"params": list(actor.parameters()), "lr": cfg.reset.actor_lr},
+                  {"params": list(model.parameters()), "lr": cfg.reset.critic_lr}]  # the priors are buffers
+        return model, loss, groups
+
+    def fresh_target(self, cfg, obs_dim, act_dim, parts):
+        # the target classifiers' trained part starts as networks of their own (the same priors); RCE never
+        # reads the reset actor's target
+        fresh = parts.ensemble(obs_dim, act_dim, num_members=cfg.algo.num_members,
+                               hidden_sizes=tuple(cfg.hidden_sizes), prior_scale=0.0)
+        _pessimistic_start(cfg, fresh)  # the pessimistic start's output bias holds for the targets too
+        return fresh, "target_classifier_network_params"
+
+    def replay(self, cfg, size, batch_size):
+        # the n-step state beside the next state; with algo.nstep_sampling: episode (the release), episodes
+        # first, then a window of n steps inside one
+        episodes = OmegaConf.select(cfg, "algo.nstep_sampling", default="episode") == "episode"
+        return ReplayBuffer(storage=LazyTensorStorage(size), batch_size=batch_size,
+                            transform=NStepStateTransform(cfg.algo.n_steps),
+                            sampler=EpisodeWindowSampler(cfg.algo.n_steps) if episodes else None)
+
+    def buffer_keys(self, cfg, agent, *, arms):
+        # the n-step transform reads the trajectory id beside the end flags
+        keys = [*map(_nested, agent.loss.in_keys), *END_FLAGS, ("collector", "traj_ids")]
+        if arms:
+            keys.append(("collector", "env_ids"))  # ArmReplay's routing
+        return keys
+
+    def prepare(self, sample, info, examples, cfg):
+        if info.get("fallback", False):  # no reset episode has n transitions yet: the release's one-step label
+            sample.set("one_step", torch.ones(sample.shape[0], dtype=torch.bool, device=sample.device))
+        sample.set("example", examples.sample(sample.shape[0]).to(cfg.device))  # as many success examples
+        return sample
+
+    def threshold(self, cfg):
+        return float(cfg.task.p_thresh if cfg.algo.threshold is None else cfg.algo.threshold)
+
+    def trigger(self, model, threshold, trigger_class=ResetTriggerTransform):
+        return trigger_class(model, threshold)
+
+    def member_scores(self, values):
+        return torch.sigmoid(values), success_probability(values)
+
+    def batched_update(self, losses, optimizers, cfg, tau):
+        return RunRCEUpdate(losses, optimizers, tau=tau)
+
+    def check(self, cfg):
+        problems = []
+        if cfg.algo.threshold is not None and not 0.0 < float(cfg.algo.threshold) < 1.0:
+            problems.append(f"algo.threshold (a success probability) must lie in (0, 1), got {cfg.algo.threshold}")
+        if OmegaConf.select(cfg, "algo.reward_bounds", default=None) is not None:
+            problems.append("algo.reward_bounds clips LNT's TD targets; ours has no reward (its labels: "
+                            "algo.clip_target_values)")
+        sampling = OmegaConf.select(cfg, "algo.nstep_sampling", default="episode")
+        if sampling not in ("episode", "transition"):
+            problems.append(f"algo.nstep_sampling must be episode or transition, got {sampling!r}")
+        draw = OmegaConf.select(cfg, "algo.prior_bias_draw", default="fan_in")
+        if draw not in PRIOR_BIAS_DRAWS:
+            problems.append(f"algo.prior_bias_draw must be one of {', '.join(PRIOR_BIAS_DRAWS)}, got {draw!r}")
+        return problems
+
+
+class LNTKind(ResetAgentKind):
+    """LNT (shaped reward) and LNT-sparse (the success flag as its reward): DDPG on K Q-functions with priors."""
+
+    critic_loss, scores_probability, time_ordered_replay, reduction = "loss_value", False, False, "min"
+
+    def __init__(self, name: str) -> None:
+        self.name = name
+
+    def build(self, cfg, actor, obs_dim, act_dim, parts):
+        model = parts.ensemble(
+            obs_dim, act_dim, num_members=cfg.algo.num_members, hidden_sizes=tuple(cfg.hidden_sizes),
+            prior_scale=cfg.algo.prior_scale, out_keys=["state_action_value"],
+        )
+        loss = parts.ddpg_loss(actor, model, delay_actor=True, delay_value=True)
+        loss.set_keys(reward="lnt_reward")  # written by prepare(): one column per member
+        loss.make_value_estimator(gamma=cfg.gamma)
+        bounds = OmegaConf.select(cfg, "algo.reward_bounds", default=None)
+        if bounds is not None:  # not the paper's: TD targets clipped to the values these rewards allow
+            bound_td0_targets(loss, tuple(bounds))
+        groups = [{"params": list(loss.actor_network_params.values(True, True)), "lr": cfg.reset.actor_lr},
+                  {"params": list(loss.value_network_params.values(True, True)), "lr": cfg.reset.critic_lr}]
+        return model, loss, groups
+
+    def replay(self, cfg, size, batch_size):
+        return ReplayBuffer(storage=LazyTensorStorage(size), batch_size=batch_size)
+
+    def buffer_keys(self, cfg, agent, *, arms):
+        # its rows are single transitions: one buffer serves every arm; the reward comes from these two
+        return [*map(_nested, agent.loss.in_keys), *END_FLAGS, ("next", "reset_reward"), ("next", "reset_success")]
+
+    def prepare(self, sample, info, examples, cfg):
+        return lnt_batch(sample, cfg.algo, int(cfg.algo.num_members))
+
+    def threshold(self, cfg):
+        return float(cfg.algo.threshold)  # Q_thresh
+
+    def trigger(self, model, threshold, trigger_class=ResetTriggerTransform):
+        return trigger_class(model, threshold, score="value", reduction="min",
+                             model_out_key="state_action_value", score_key="reset_value")
+
+    def member_scores(self, values):
+        return torch.full_like(values, math.nan), values
+
+    def batched_update(self, losses, optimizers, cfg, tau):
+        return RunDDPGUpdate(losses, optimizers, gamma=float(cfg.gamma), tau=tau, reward_key="lnt_reward")
+
+    def check(self, cfg):
+        bounds = OmegaConf.select(cfg, "algo.reward_bounds", default=None)
+        if bounds is not None and (not OmegaConf.is_list(bounds) or len(bounds) != 2
+                                   or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in bounds)
+                                   or not bounds[0] < bounds[1]):
+            return [f"algo.reward_bounds must be [low, high] with low < high, got {bounds!r}"]
+        return []
+
+
+KINDS = {"ours": RCEKind(), "lnt": LNTKind("lnt"), "lnt_sparse": LNTKind("lnt_sparse")}
+
+
+def reset_kind(cfg: DictConfig) -> ResetAgentKind:
+    """The reset agent of ``cfg.algo.name``."""
+    try:
+        return KINDS[cfg.algo.name]
+    except KeyError:
+        raise ValueError(f"unknown algorithm {cfg.algo.name!r}; known: {', '.join(KINDS)}") from None
+
+
+def lnt_batch(sample, algo: DictConfig, num_members: int):
+    """The LNT reset agent's batch: its reward (shaped or sparse) and done flags, one column per ensemble member."""
+    nxt = sample.get("next")
+    reward = nxt.get("reset_reward") if algo.reset_reward == "shaped" else nxt.get("reset_success").float()
+    shape = (*reward.shape[:-1], num_members)
+    nxt.set("lnt_reward", reward.expand(shape))
+    for key in ("done", "terminated"):
+        nxt.set(key, nxt.get(key).expand(shape))
+    return sample
+
+
+def _pessimistic_start(cfg: DictConfig, ensemble: nn.Module) -> None:
+    """``algo.initial_logit_bias`` (not the paper's): the members' output bias set to it."""
+    bias = OmegaConf.select(cfg, "algo.initial_logit_bias", default=None)
+    if bias is not None:
+        with torch.no_grad():
+            getattr(ensemble, f"bias_{ensemble.num_layers - 1}").fill_(float(bias))
