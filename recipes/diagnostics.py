@@ -21,7 +21,7 @@ DIAGNOSTIC_FIELDS = [
     "examples", "example_c", "example_p", "reset_replay_c", "reset_replay_p", "forward_p", "forward_p_min_member",
     "forward_p_member_std", "forward_below_share", "sampler_fallbacks",
 ]
-RESET_FIELDS = ["frames", "outcome", "steps", "distance_to_start", "distance_to_examples"]
+RESET_FIELDS = ["frames", "outcome", "steps", "distance_to_start", "distance_to_examples", "started_by", "irrecoverable"]
 
 
 class TriggerScores:

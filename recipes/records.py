@@ -31,9 +31,10 @@ PROGRESS_FIELDS = [
     "triggered_resets", "requested_resets", "successful_resets", "forward_share", "reset_success_rate",
     "eval_return", "average_return", "steps_per_second", "loss_forward_actor", "loss_forward_critic",
     "loss_reset_actor", "loss_reset_critic", "skipped_updates", "protective_stops",
+    "irrecoverable_forward", "irrecoverable_reset",
 ]
 EVAL_FIELDS = ["frames", "forward_return", "forward_steps", "triggered", "reset_success", "reset_steps"]
-TRIGGER_FIELDS = ["frames", "steps", "value", "observation"]
+TRIGGER_FIELDS = ["frames", "steps", "value", "irrecoverable", "observation"]
 # the steps of each phase are timed once both agents made this many updates: the first ones include
 # one-off costs (with speed.compile, the compile pause and a recompile of the forward loss)
 WARM_UP_UPDATES = 10
@@ -95,6 +96,10 @@ class RunRecord:
         self.loggers = make_loggers(self.cfg, self.run_dir)
         # wall time of the steps of each phase once its agent updates (env step, policy, trigger, buffer, update)
         self.step_time = self.history.setdefault("step_time", {"forward": [0.0, 0], "reset": [0.0, 0]})
+        # how often the system entered an irrecoverable state (the env's latched "irrecoverable" flag turned
+        # on: the cliff tasks' ditch) in a forward and in a reset step; how the last forward episode ended
+        self.irrecoverable = self.history.setdefault("irrecoverable", {"forward": 0, "reset": 0})
+        self.history.setdefault("last_forward_end", "")
         self.bar = tqdm(total=int(self.cfg.total_steps), initial=self.collector.frames,
                         desc=f"{self.cfg.task.name}/{self.cfg.algo.name}", unit="step", mininterval=2.0,
                         disable=not self.cfg.progress_bar, dynamic_ncols=True)
@@ -115,14 +120,24 @@ class RunRecord:
             self.step_time[phase][1] += batch.numel()
         self._last = now
         self.bar.update(batch.numel())
+        before, after = _flags(batch)
+        if after is not None:
+            self.irrecoverable[phase] += int((after & ~before).sum())
         for event in self.collector.pop_events():
             self.trigger_scores.add_event(event)
+            # the state an event names: a trigger during a forward episode is followed by the reset episode's
+            # first step, which starts from that state; every other event ends with this step
+            state_flag = before if phase == "reset" and event["phase"] == "forward" else after
+            flag = int(state_flag) if state_flag is not None and state_flag.numel() == 1 else ""
+            if event["phase"] == "forward":
+                self.history["last_forward_end"] = event["outcome"]
             if event["phase"] == "reset":
-                self.resets.append(self.distances.row(event))
+                self.resets.append({**self.distances.row(event), "started_by": self.history["last_forward_end"],
+                                    "irrecoverable": flag})
             if event["outcome"] == "triggered":
                 obs = event["state"]["observation"].flatten().tolist()
                 self.triggers.append({"frames": event["frame"], "steps": event["steps"],
-                                      "value": obs[self.curriculum_index],
+                                      "value": obs[self.curriculum_index], "irrecoverable": flag,
                                       "observation": " ".join(f"{v:.5g}" for v in obs)})
 
     def evaluation(self, result: dict) -> None:
@@ -141,6 +156,7 @@ class RunRecord:
             "average_return": float(np.mean(returns)) if returns else float("nan"),
             "steps_per_second": frames / max(self.history["elapsed"], 1e-9), "skipped_updates": learner.budget.skipped,
             **self.history["last_losses"], "protective_stops": safety_counters(env).get("protective_stops", 0),
+            "irrecoverable_forward": self.irrecoverable["forward"], "irrecoverable_reset": self.irrecoverable["reset"],
         }
         self.progress.append(row)
         reset_rb = learner.reset_rb
@@ -189,6 +205,8 @@ class RunRecord:
             "overruns": getattr(robot, "overruns", 0),
             "protective_stops": safety_counters(env).get("protective_stops", 0),
             "safety": safety_counters(env),
+            # entries into an irrecoverable state (over the cliff, into the ditch), in forward and in reset steps
+            "irrecoverable": dict(self.irrecoverable),
             "seconds": round(history["elapsed"], 1),
             "steps_per_second": round(collector.frames / max(history["elapsed"], 1e-9), 1),
             "step_seconds": {name: (total / count if count else None) for name, (total, count) in self.step_time.items()},
@@ -220,3 +238,12 @@ def _json_default(value):
     if isinstance(value, (np.floating, np.integer)):
         return value.item()
     return float(value)
+
+
+def _flags(batch) -> tuple:
+    """The env's latched ``irrecoverable`` flag before and after the step(s) in ``batch`` (one per row), or
+    ``(None, None)`` for an env without it."""
+    before, after = batch.get("irrecoverable", None), batch.get(("next", "irrecoverable"), None)
+    if before is None or after is None:
+        return None, None
+    return before.reshape(-1).bool(), after.reshape(-1).bool()

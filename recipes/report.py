@@ -601,12 +601,20 @@ def fig5_figure(task: str, algo: str, setting: str, members: list[RunFolder]):
     against steps, per run; a run without any triggered reset is named on the figure."""
     fig, ax = plt.subplots(figsize=(6, 3.8))
     quiet = []
-    for run, label in zip(members, _run_labels(members)):
+    for run, label, color in zip(members, _run_labels(members), _run_colors(len(members))):
         points = run.table("triggers.csv")
         if len(points.get("frames", ())):
-            ax.scatter(points["frames"], points["value"], s=6, alpha=0.5, label=label)
+            # a trigger in a state already irrecoverable (over the cliff) came too late: drawn as a cross
+            lost = points.get("irrecoverable", np.zeros(len(points["frames"]))) == 1
+            ax.scatter(points["frames"][~lost], points["value"][~lost], s=6, alpha=0.5, color=color, label=label)
+            if lost.any():
+                ax.scatter(points["frames"][lost], points["value"][lost], s=14, marker="x", color=color,
+                           label=f"{label}: already irrecoverable ({int(lost.sum())})")
         else:  # train.py writes triggers.csv at the first triggered reset: no file, no trigger
             quiet.append((run, label))
+    edge = cliff_edge(members[0])
+    if edge is not None:
+        ax.axhline(edge, color="k", ls="--", lw=1, label=f"cliff edge (x = {edge:g})")
     if quiet:
         if len(quiet) == len(members):
             steps = max(run.summary.get("steps", 0) for run in members)
@@ -619,9 +627,24 @@ def fig5_figure(task: str, algo: str, setting: str, members: list[RunFolder]):
            xlabel="steps (forward + reset)", ylabel=_curriculum_label(members[0]))
     ax.set_xlim(0, max(run.summary.get("steps", 0) for run in members) or None)  # the whole run, quiet stretches too
     ax.grid(alpha=0.3)
-    if len(quiet) < len(members):
-        ax.legend(fontsize=8, markerscale=3)
+    if len(quiet) < len(members) or edge is not None:
+        ax.legend(fontsize=8, markerscale=2)
     return fig
+
+
+def cliff_edge(run: RunFolder) -> float | None:
+    """The cliff's edge on Fig. 5's axis: the task's ``edge`` where Fig. 5 plots the x position (observation
+    entry 0, the cliff tasks' curriculum), else None."""
+    config = run.folder / "config.yaml"
+    if not config.exists():
+        return None
+    from omegaconf import OmegaConf
+    from torchrl_reset_envs import TASKS
+
+    cfg = OmegaConf.load(config)
+    spec = TASKS.get(str(OmegaConf.select(cfg, "task.name")))
+    edge = getattr(getattr(spec, "env_class", None), "edge", None)
+    return None if edge is None or OmegaConf.select(cfg, "task.curriculum.index") != 0 else float(edge)
 
 
 def figure5(runs: list[RunFolder], out: Path) -> list[Path]:

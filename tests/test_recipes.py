@@ -649,3 +649,76 @@ def test_each_replay_buffer_keeps_what_its_agent_reads_of_a_collected_step(tmp_p
     finally:
         run.collector.shutdown()
         run.eval_env.close()
+
+
+def _chain_record(tmp_path, *, ditch, trigger_cell, horizon, frames, reset_direction=-1.0):
+    """A RunRecord over a DualCollector on ChainEnv: forward always right, reset always left (a reset cannot
+    leave the ditch); the trigger is sure below ``trigger_cell`` and hopeless from it on."""
+    from tensordict.nn import TensorDictModule
+    from torchrl.envs import TransformedEnv
+    from records import RunRecord
+    from torchrl_reset import DualCollector, ResetTriggerTransform
+    from torchrl_reset_envs import ChainEnv
+
+    def policy(direction):
+        return TensorDictModule(lambda obs: torch.full((*obs.shape[:-1], 1), direction), ["observation"], ["action"])
+
+    def logits(obs):
+        return torch.where(obs.argmax(-1, keepdim=True) >= trigger_cell, -10.0, 0.0)
+
+    trigger = ResetTriggerTransform(TensorDictModule(logits, ["observation"], ["state_action_logit"]), 0.1)
+    env = TransformedEnv(ChainEnv(num_states=8, ditch=ditch), trigger)
+    collector = DualCollector(env, policy(1.0), policy(reset_direction), max_forward_steps=horizon, max_reset_steps=horizon,
+                              min_reset_steps=1, total_frames=frames)
+    cfg = config(tmp_path, "task.curriculum.index=0", "heat_up=1000")
+    tmp_path.mkdir(parents=True)
+    record = RunRecord(cfg, tmp_path, collector, trigger)
+    record.begin(None)
+    for batch in collector:
+        record.step(batch, DualCollector.phase_of(batch))
+    record.close()
+    return record
+
+
+def test_the_records_count_entries_into_the_ditch_by_phase_and_say_which_triggers_and_resets_were_in_it(tmp_path):
+    """Worked out by hand on an 8-cell chain (cells 0..7, start 0), forward steps right, reset steps left.
+
+    Ditch at 4, no trigger reachable (it would fire from cell 6): each forward episode of H_f = 6 steps
+    enters the ditch at its 4th step (cell 3 -> 4) and stays; the reset episode cannot move and ends in a
+    manual reset after 6 steps. 24 steps: two forward episodes (2 entries), two failed resets in the ditch."""
+    record = _chain_record(tmp_path / "a", ditch=4, trigger_cell=6, horizon=6, frames=24)
+    assert record.irrecoverable == {"forward": 2, "reset": 0}
+    resets = rows(tmp_path / "a" / "resets.csv")
+    assert [(r["outcome"], r["started_by"], r["irrecoverable"]) for r in resets] == [("manual", "requested", "1")] * 2
+    assert not (tmp_path / "a" / "triggers.csv").exists()
+
+    # The trigger fires from cell 3, the ditch beyond it at 6: forward 0 -> 1 -> 2 -> 3, then the action from
+    # cell 3 is stopped (a recoverable state); the reset walks 3 -> 0 in 3 steps and succeeds. Six steps a
+    # cycle, no entry into the ditch.
+    record = _chain_record(tmp_path / "b", ditch=6, trigger_cell=3, horizon=6, frames=12)
+    assert record.irrecoverable == {"forward": 0, "reset": 0}
+    triggers = rows(tmp_path / "b" / "triggers.csv")
+    assert [(t["steps"], t["irrecoverable"]) for t in triggers] == [("3", "0")] * 2
+    resets = rows(tmp_path / "b" / "resets.csv")
+    assert [(r["outcome"], r["started_by"], r["irrecoverable"]) for r in resets] == [("success", "triggered", "0")] * 2
+
+    # The trigger fires only in the ditch (from cell 3, the ditch's first cell): the forward step 2 -> 3 enters
+    # it, the trigger stops the next action in a state already lost, and the reset fails (H_r steps in place).
+    # H_f = 6: it fires mid-episode, recorded with the reset episode's first step; 3 + 6 steps a cycle.
+    # H_f = 3: it fires on the action at H_f, recorded with the forward episode's last step; 3 + 3 a cycle.
+    for name, horizon, cycles in (("c", 6, 2), ("d", 3, 3)):
+        record = _chain_record(tmp_path / name, ditch=3, trigger_cell=3, horizon=horizon, frames=18)
+        assert record.irrecoverable == {"forward": cycles, "reset": 0}
+        triggers = rows(tmp_path / name / "triggers.csv")
+        assert [(t["steps"], t["irrecoverable"]) for t in triggers] == [("3", "1")] * cycles
+        resets = rows(tmp_path / name / "resets.csv")
+        assert [(r["outcome"], r["started_by"], r["irrecoverable"]) for r in resets] == [("manual", "triggered", "1")] * cycles
+
+    # A reset agent that walks the wrong way: the trigger stops the forward agent at cell 3 (recoverable, the
+    # ditch at 4), and the reset's first step takes the system over the edge. The entry is the reset's; the
+    # triggered state was recoverable.
+    record = _chain_record(tmp_path / "e", ditch=4, trigger_cell=3, horizon=6, frames=18, reset_direction=1.0)
+    assert record.irrecoverable == {"forward": 0, "reset": 2}
+    assert [t["irrecoverable"] for t in rows(tmp_path / "e" / "triggers.csv")] == ["0", "0"]
+    resets = rows(tmp_path / "e" / "resets.csv")
+    assert [(r["outcome"], r["started_by"], r["irrecoverable"]) for r in resets] == [("manual", "triggered", "1")] * 2

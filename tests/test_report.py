@@ -396,3 +396,28 @@ def test_fig5_is_drawn_for_runs_without_triggers_and_says_so(tmp_path):
     assert _texts(fig.axes[0]) == ["no triggered reset in seed 0"]
     assert [t.get_text() for t in fig.axes[0].get_legend().get_texts()] == ["seed 1"]
     report.plt.close(fig)
+
+
+def test_fig5_of_a_cliff_task_draws_the_edge_and_marks_the_triggers_that_came_too_late(tmp_path):
+    """Cliff-cheetah's Fig. 5 plots the x position before each trigger: the edge (x = 14, the task's
+    definition) is drawn, and a trigger in a state already irrecoverable is a cross, counted in the legend."""
+    runs = tmp_path / "runs"
+    config = "task:\n  name: cliff_cheetah\n  curriculum:\n    index: 0\n    label: x position (m)\n"
+    write_run(runs, "ours", 0, task="cliff_cheetah", config=config, progress=_progress([1, 2, 3, 4], [1, 2, 3, 4]),
+              triggers=(["frames", "steps", "value", "irrecoverable", "observation"],
+                        [(1000, 40, 3.0, 0, "3 0"), (2000, 90, 13.5, 0, "13.5 0"), (3000, 120, 14.6, 1, "14.6 -1.5")]))
+    fig = report.fig5_figure("cliff_cheetah", "ours", "", report.find_runs([runs]))
+    ax = fig.axes[0]
+    assert _lines(ax)["cliff edge (x = 14)"].get_ydata()[0] == 14.0
+    dots, crosses = ax.collections
+    assert dots.get_offsets().tolist() == [[1000.0, 3.0], [2000.0, 13.5]]
+    assert crosses.get_offsets().tolist() == [[3000.0, 14.6]]
+    assert [t.get_text() for t in ax.get_legend().get_texts()] == [
+        "seed 0", "seed 0: already irrecoverable (1)", "cliff edge (x = 14)"]
+    report.plt.close(fig)
+    # an older triggers.csv without the column, and a task without a cliff: no crosses, no edge
+    write_run(runs, "ours", 1, progress=_progress([1, 2], [1, 2]),
+              triggers=(["frames", "steps", "value", "observation"], [(1500, 10, 0.3, "0.3 0")]))
+    fig = report.fig5_figure("peg_insertion_insert", "ours", "", report.find_runs([runs / "peg_insertion_insert"]))
+    assert len(fig.axes[0].collections) == 1 and "cliff edge (x = 14)" not in _lines(fig.axes[0])
+    report.plt.close(fig)
