@@ -1,6 +1,7 @@
 """Which member is the minimum the reset actor ascends, and what pulls its action: the trained part or the prior?
 
     python results/quick-ball-in-cup/probes/min_member.py <run folder> [<run folder> ...] [--rows 2000]
+    python results/quick-ball-in-cup/probes/min_member.py <run folder> --every-checkpoint
 
 Ours' reset actor ascends ``min_i C_i(s, pi(s))``; each member's logit is ``f_i(s, a) + beta g_i(s, a)`` with
 ``g_i`` a fixed random prior. On the newest ``--rows`` states of the newest checkpoint's reset replay, with
@@ -27,13 +28,13 @@ from task_envs import task_dimensions  # noqa: E402
 from torchrl_reset import EnsembleValueOperator  # noqa: E402
 
 
-def probe(run: Path, rows: int) -> None:
+def probe(run: Path, rows: int, folder: Path | None = None, brief: bool = False) -> None:
     cfg = OmegaConf.load(run / "config.yaml")
     cfg.speed.accelerate = False  # the reference ensemble: its trained and prior parts can be read apart
     torch.manual_seed(0)
     obs_dim, action_spec = task_dimensions(cfg)
     agent = make_reset_agent(cfg, obs_dim, action_spec)
-    folder = Checkpoints(run / "checkpoints").folders()[0]
+    folder = Checkpoints(run / "checkpoints").folders()[0] if folder is None else folder
     agent.loss.load_state_dict(torch.load(folder / "state.pt", weights_only=False)["reset_loss"])
     _, replay = make_buffers(cfg)
     replay.loads(folder / "reset_buffer")
@@ -53,8 +54,13 @@ def probe(run: Path, rows: int) -> None:
     df = torch.autograd.grad(f_min, action, retain_graph=True)[0]
     dg = model.prior_scale * torch.autograd.grad(g_min, action)[0]
     k = logits.shape[0]
-    shares = ", ".join(f"{100 * (lowest == i).float().mean():.0f}%" for i in range(k))
     edge = action.detach().abs() > 0.9
+    if brief:
+        print(f"{folder.name}: action mean ({', '.join(f'{v:+.2f}' for v in action.detach().mean(0).tolist())}), "
+              f"|a| > 0.9 on {100 * edge.float().mean():.0f}%, tanh input beyond +-3 on {100 * (pre.abs() > 3).float().mean():.0f}% "
+              f"(mean |.| {pre.abs().mean():.1f})")
+        return
+    shares = ", ".join(f"{100 * (lowest == i).float().mean():.0f}%" for i in range(k))
     outward = lambda d: 100 * ((torch.sign(action.detach()) * d) > 0)[edge].float().mean() if edge.any() else float("nan")  # noqa: E731
     print(f"{run} ({folder.name}, {len(obs)} states): the minimum member {shares} of rows (members 0-{k - 1}); "
           f"action mean ({', '.join(f'{v:+.2f}' for v in action.detach().mean(0).tolist())}), "
@@ -71,10 +77,16 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("runs", nargs="+", type=Path)
     parser.add_argument("--rows", type=int, default=2000)
+    parser.add_argument("--every-checkpoint", action="store_true",
+                        help="one short line per checkpoint kept, oldest first (the actor's saturation over time)")
     args = parser.parse_args()
     torch.set_num_threads(1)
     for run in args.runs:
-        probe(run, args.rows)
+        if args.every_checkpoint:
+            for folder in reversed(Checkpoints(run / "checkpoints").folders()):
+                probe(run, args.rows, folder, brief=True)
+        else:
+            probe(run, args.rows)
 
 
 if __name__ == "__main__":
