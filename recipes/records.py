@@ -210,7 +210,10 @@ class RunRecord:
             "seconds": round(history["elapsed"], 1),
             "steps_per_second": round(collector.frames / max(history["elapsed"], 1e-9), 1),
             "step_seconds": {name: (total / count if count else None) for name, (total, count) in self.step_time.items()},
-            "device": str(cfg.device), "processor": processor_name(), "matmul_precision": matmul_precision, **self.code,
+            # what decides the float rounding, and so where two runs of one seed part: the processor, the
+            # product precision and the number of torch threads
+            "device": str(cfg.device), "processor": processor_name(), "matmul_precision": matmul_precision,
+            "torch_threads": torch.get_num_threads(), **self.code,
             "torch": torch.__version__, "torchrl": torchrl.__version__, **(extra or {}),
         }
         (self.run_dir / "summary.json").write_text(json.dumps(summary, indent=2, default=_json_default))

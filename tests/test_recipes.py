@@ -722,3 +722,14 @@ def test_the_records_count_entries_into_the_ditch_by_phase_and_say_which_trigger
     assert [t["irrecoverable"] for t in rows(tmp_path / "e" / "triggers.csv")] == ["0", "0"]
     resets = rows(tmp_path / "e" / "resets.csv")
     assert [(r["outcome"], r["started_by"], r["irrecoverable"]) for r in resets] == [("manual", "triggered", "1")] * 2
+
+
+def test_the_summary_names_what_decides_the_float_rounding(tmp_path):
+    """Two runs of one seed agree only on the same processor kind, product precision and torch thread count
+    (a sum split over two threads rounds otherwise): the summary names all three."""
+    before = torch.get_num_threads()
+    try:
+        saved = train.train(config(tmp_path, "task=ball_in_cup_catch", "total_steps=60", "threads=1"))
+    finally:
+        torch.set_num_threads(before)
+    assert saved["torch_threads"] == 1 and saved["matmul_precision"] == "ieee" and saved["processor"]
