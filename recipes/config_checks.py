@@ -129,9 +129,9 @@ def validate(cfg: DictConfig) -> None:
                     f"the checkpoint in {latest} is from {key} {meta.get(key)!r}, this run is {key} {value!r}; "
                     "use another run_dir or the matching task and algo."
                 )
-    elif checkpoints.folders():
+    elif held := checkpoints.folders():
         raise ConfigError(
-            f"{cfg.run_dir} already holds a checkpoint ({checkpoints.folders()[0].name}); pass resume=true to "
+            f"{cfg.run_dir} already holds a checkpoint ({held[0].name}); pass resume=true to "
             "continue it, or choose another run_dir."
         )
     threads = cfg.threads

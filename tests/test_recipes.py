@@ -531,6 +531,21 @@ def test_cliff_walker_explores_with_the_releases_smaller_noise(tmp_path):
 
 
 # ------------------------------------------------- interrupts, exit codes, keys the recipe does not define
+def _signal_when(args, ready, sig, *, poll: float) -> tuple[int, str]:
+    """Starts the command ``args``, sends it ``sig`` once ``ready()`` holds (it must still be running then), and
+    returns its exit status and standard error."""
+    proc = subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env={**os.environ, "RL_WARNINGS": "0"})
+    deadline = time.time() + 300
+    while time.time() < deadline and proc.poll() is None:
+        if ready():
+            break
+        time.sleep(poll)
+    assert proc.poll() is None, proc.stderr.read().decode()[-2000:]
+    proc.send_signal(sig)
+    _, err = proc.communicate(timeout=300)
+    return proc.returncode, err.decode()
+
+
 def test_ctrl_c_ends_the_run_after_its_step_and_the_printed_command_resumes_it_exactly(tmp_path):
     import shlex
 
@@ -538,18 +553,10 @@ def test_ctrl_c_ends_the_run_after_its_step_and_the_printed_command_resumes_it_e
     train.train(config(tmp_path / "whole", *common))
     run_dir = tmp_path / "run"
     args = [sys.executable, str(RECIPES / "train.py"), *TINY, *common, f"run_dir={run_dir}"]
-    proc = subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env={**os.environ, "RL_WARNINGS": "0"})
     progress = run_dir / "progress.csv"
-    deadline = time.time() + 300
-    while time.time() < deadline and proc.poll() is None:
-        if progress.exists() and len(rows(progress)) >= 2:  # past step 100, mid-way
-            break
-        time.sleep(0.05)
-    assert proc.poll() is None, proc.stderr.read().decode()[-2000:]
-    proc.send_signal(signal.SIGINT)
-    _, err = proc.communicate(timeout=300)
-    err = err.decode()
-    assert proc.returncode == 130, err[-2000:]  # the shell's 128 + SIGINT
+    returncode, err = _signal_when(args, lambda: progress.exists() and len(rows(progress)) >= 2,  # past step 100
+                                   signal.SIGINT, poll=0.05)
+    assert returncode == 130, err[-2000:]  # the shell's 128 + SIGINT
     summary = json.loads((run_dir / "summary.json").read_text())
     stopped = summary["steps"]
     assert 100 <= stopped < 200 and not summary["finished"]
@@ -574,18 +581,10 @@ def test_a_batch_stopped_by_sigterm_exits_143_and_prints_the_command_that_contin
 
     args = [sys.executable, str(RECIPES / "train.py"), *TINY, "task=peg_insertion_remove", "algo=ours", "seeds=[3,4]",
             "exploration.restart=episode", "update_order=joint", "total_steps=100000", f"sweep_dir={tmp_path}"]
-    proc = subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env={**os.environ, "RL_WARNINGS": "0"})
     folders = [tmp_path / f"peg_insertion_remove/ours/seed{seed}" for seed in (3, 4)]
-    deadline = time.time() + 300
-    while time.time() < deadline and proc.poll() is None:
-        if all((f / "progress.csv").exists() and rows(f / "progress.csv") for f in folders):
-            break
-        time.sleep(0.1)
-    assert proc.poll() is None, proc.stderr.read().decode()[-2000:]
-    proc.send_signal(signal.SIGTERM)
-    _, err = proc.communicate(timeout=300)
-    err = err.decode()
-    assert proc.returncode == 143, err[-2000:]  # the shell's 128 + SIGTERM
+    returncode, err = _signal_when(args, lambda: all((f / "progress.csv").exists() and rows(f / "progress.csv")
+                                                     for f in folders), signal.SIGTERM, poll=0.1)
+    assert returncode == 143, err[-2000:]  # the shell's 128 + SIGTERM
     for folder in folders:
         summary = json.loads((folder / "summary.json").read_text())
         latest = folder / "checkpoints" / (folder / "checkpoints" / "latest").read_text()
