@@ -12,6 +12,7 @@ import re
 import shutil
 import signal
 import subprocess
+import time
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Callable
@@ -177,6 +178,27 @@ def _sha256(path: Path) -> str:
     return digest.hexdigest()
 
 
+# sha256 of the checkpoint files this process has read, by path and by what stat said of the file when it was
+# read (device, inode, size, modification time in ns). A resume verifies the same folder more than once at
+# start-up (the configuration check, again under the run folder's lock, then the load); a file written since has
+# a later modification time and is read again. File systems stamp times with a coarse clock, so a file modified
+# within _SETTLED_NS of being read could be written again under the same stamp: such a file is not remembered.
+_hashed: dict[str, tuple[tuple[int, int, int, int], str]] = {}
+_SETTLED_NS = 2_000_000_000
+
+
+def _checkpoint_sha256(path: Path, stat: os.stat_result) -> str:
+    key = str(path.resolve())
+    identity = (stat.st_dev, stat.st_ino, stat.st_size, stat.st_mtime_ns)
+    known = _hashed.get(key)
+    if known is not None and known[0] == identity:
+        return known[1]
+    digest = _sha256(path)
+    if stat.st_mtime_ns < time.time_ns() - _SETTLED_NS:
+        _hashed[key] = (identity, digest)
+    return digest
+
+
 def _write_manifest(folder: Path) -> None:
     files = {}
     for path in sorted(p for p in folder.rglob("*") if p.is_file()):
@@ -206,13 +228,13 @@ def checkpoint_problems(folder: Path) -> list[str]:
     for name, size, sha256 in listed:
         path = folder / name
         try:
-            actual = path.stat().st_size
+            stat = path.stat()
         except OSError:
             problems.append(f"{name} is missing")
             continue
-        if actual != size:
-            problems.append(f"{name} has {actual} bytes, the manifest lists {size}")
-        elif _sha256(path) != sha256:
+        if stat.st_size != size:
+            problems.append(f"{name} has {stat.st_size} bytes, the manifest lists {size}")
+        elif _checkpoint_sha256(path, stat) != sha256:
             problems.append(f"{name} differs from the manifest's sha256 (changed after it was written)")
     return problems
 

@@ -92,6 +92,26 @@ def test_the_latest_checkpoint_is_the_newest_intact_one_and_damage_is_named(tmp_
     assert Checkpoints(tmp_path).latest() == latest
 
 
+def test_a_resume_reads_each_checkpoint_file_once_and_again_after_any_write(tmp_path, monkeypatch):
+    import run_files
+    checkpoints = Checkpoints(tmp_path)
+    folder = checkpoints.save(100, write_state(b"12345678"), {"frames": 100})
+    hour_ago = os.stat(folder / "state.pt").st_mtime_ns - 3600 * 10**9  # written an hour before the resume
+    for path in folder.rglob("*"):
+        os.utime(path, ns=(hour_ago, hour_ago))
+    read = []
+    monkeypatch.setattr(run_files, "_sha256", lambda path: read.append(Path(path).name) or sha256(path))
+    for _ in range(3):  # the configuration check, the check under the folder's lock, the load
+        assert Checkpoints(tmp_path).survey() == (folder, [])
+    assert sorted(read) == ["meta.json", "observation.memmap", "state.pt"]  # each file once
+    (folder / "state.pt").write_bytes(b"87654321")  # the same size, written now
+    latest, damaged = Checkpoints(tmp_path).survey()
+    assert latest is None and damaged[0][1] == ["state.pt differs from the manifest's sha256 (changed after it "
+                                                "was written)"]
+    assert Checkpoints(tmp_path).survey()[0] is None  # a file written just now is read every time
+    assert read.count("state.pt") == 3
+
+
 def test_a_checkpoint_written_before_manifests_counts_and_resume_auto_agrees_with_latest(tmp_path):
     run_dir = tmp_path / "run"
     old = run_dir / "checkpoints" / "step_0000000300"
