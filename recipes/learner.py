@@ -41,10 +41,17 @@ def make_collector(cfg: DictConfig, env, forward: Agent, reset: Agent) -> DualCo
         max_reset_steps=reset_horizon(cfg),                 # H_r
         min_reset_steps=int(cfg.reset.min_steps),
         total_frames=int(cfg.total_steps),
+        event_keys=event_keys(env),
         **restart_option(cfg),
     )
     collector.set_seed(int(cfg.seed))
     return collector if arms is None else collector.pooled()
+
+
+def event_keys(env) -> list[str]:
+    """What each episode record copies beside the observation: the env's latched ``irrecoverable`` flag, where it
+    has one (the records say whether a triggered state, or the state a reset episode ended in, was already lost)."""
+    return [key for key in ("irrecoverable",) if key in env.full_observation_spec.keys(True, True)]
 
 
 def restart_option(cfg: DictConfig) -> dict:

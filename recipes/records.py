@@ -125,10 +125,9 @@ class RunRecord:
             self.irrecoverable[phase] += int((after & ~before).sum())
         for event in self.collector.pop_events():
             self.trigger_scores.add_event(event)
-            # the state an event names: a trigger during a forward episode is followed by the reset episode's
-            # first step, which starts from that state; every other event ends with this step
-            state_flag = before if phase == "reset" and event["phase"] == "forward" else after
-            flag = int(state_flag) if state_flag is not None and state_flag.numel() == 1 else ""
+            # the env's flag in the state the event names (the collector copies it: learner.event_keys)
+            flag = event["state"].get("irrecoverable", None)
+            flag = int(flag) if flag is not None else ""
             if event["phase"] == "forward":
                 self.history["last_forward_end"] = event["outcome"]
             if event["phase"] == "reset":

@@ -166,7 +166,7 @@ def test_a_triggered_copy_is_not_stepped_while_the_others_are(start_joints):
 
 
 def test_shared_mode_one_example_buffer_and_unique_episodes(start_joints):
-    collector = batched(start_joints, 300, shared_examples=True)
+    collector = batched(start_joints, 300, shared_examples=True, event_keys=["irrecoverable"])
     ids = {}
     for batch in collector:
         for env, traj in zip(batch["collector", "env_ids"].tolist(), batch["collector", "traj_ids"].tolist()):
@@ -177,6 +177,11 @@ def test_shared_mode_one_example_buffer_and_unique_episodes(start_joints):
     total = collector.metrics()
     # one example per forward episode started: the N first states plus one per ended reset episode
     assert len(collector.example_buffers[0]) == len(SEEDS) + total["reset_episodes"] + total["terminations"]
+    # each record copies the env's flag (peg-insertion has no irrecoverable state: always False)
+    records = collector.pop_events()
+    assert len(records) == total["forward_episodes"] + total["reset_episodes"]
+    assert all(set(e["state"].keys()) == {"observation", "irrecoverable"} for e in records)
+    assert not any(bool(e["state"]["irrecoverable"]) for e in records)
 
 
 def test_resume_continues_exactly(start_joints):
@@ -245,6 +250,9 @@ def test_bad_inputs(start_joints):
     with pytest.raises(ValueError, match="one per copy"):
         BatchedDualCollector(env, forward_policy(1.0), reset_policy(1.0, start_joints), max_forward_steps=5,
                              example_buffers=[InitialStateBuffer(), InitialStateBuffer()])
+    with pytest.raises(ValueError, match="'ditch'.*observation spec"):
+        BatchedDualCollector(env, forward_policy(1.0), reset_policy(1.0, start_joints), max_forward_steps=5,
+                             event_keys=["ditch"])
     with pytest.raises(ValueError, match="num_envs"):
         BatchedTaskEnv(TASK, num_envs=2, seeds=SEEDS)
     with pytest.raises(ValueError, match="robot"):

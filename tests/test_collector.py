@@ -110,6 +110,31 @@ def test_triggered_steps_are_not_executed_nor_yielded_and_are_counted():
     assert torch.isnan(reset["next", "success_probability"]).all()
 
 
+@pytest.mark.parametrize("trigger_cell, flag", [(4, True), (3, False)])
+def test_event_keys_copy_the_envs_flag_of_the_state_each_episode_record_names(trigger_cell, flag):
+    # An 8-cell chain with its ditch from cell 4; forward steps right, reset steps left, H_f = H_r = 6.
+    # Trigger from cell 4: forward 0 -> 4 in 4 steps, the action from cell 4 (in the ditch) is stopped, so the
+    # triggered state is already lost; the reset cannot leave the ditch and ends in a manual reset there after
+    # 6 steps (10 steps a cycle). Trigger from cell 3: stopped at cell 3 (not lost), the reset walks back to 0
+    # in 3 steps (6 steps a cycle).
+    env = TransformedEnv(ChainEnv(num_states=8, ditch=4), ResetTriggerTransform(trigger_at(trigger_cell), 0.1))
+    frames = 20 if flag else 12
+    collector = DualCollector(env, RIGHT, LEFT, max_forward_steps=6, max_reset_steps=6, min_reset_steps=1,
+                              total_frames=frames, event_keys=["irrecoverable"])
+    collect(collector)
+    events = collector.pop_events()
+    reset_outcome = "manual" if flag else "success"
+    assert [(e["phase"], e["outcome"]) for e in events] == [("forward", "triggered"), ("reset", reset_outcome)] * 2
+    assert [cell(e["state"]["observation"]) for e in events] == ([4, 4] if flag else [3, 0]) * 2
+    assert [bool(e["state"]["irrecoverable"]) for e in events] == [flag] * 4
+    # without event_keys a record holds the example keys only; a key the env does not observe is refused
+    plain = DualCollector(env, RIGHT, LEFT, max_forward_steps=6, min_reset_steps=1, total_frames=6)
+    collect(plain)
+    assert all(set(e["state"].keys()) == {"observation"} for e in plain.pop_events())
+    with pytest.raises(ValueError, match="'ditch'.*observation spec"):
+        DualCollector(env, RIGHT, LEFT, max_forward_steps=6, event_keys=["ditch"])
+
+
 @pytest.mark.parametrize("trigger_cell, expected", [(3, "triggered"), (4, "requested")])
 def test_at_the_horizon_the_trigger_is_scored_before_the_reset_is_requested(trigger_cell, expected):
     # H_f = 3 steps from cell 0 end in cell 3. Algorithm 1 then draws the next action and scores it

@@ -668,7 +668,7 @@ def _chain_record(tmp_path, *, ditch, trigger_cell, horizon, frames, reset_direc
     trigger = ResetTriggerTransform(TensorDictModule(logits, ["observation"], ["state_action_logit"]), 0.1)
     env = TransformedEnv(ChainEnv(num_states=8, ditch=ditch), trigger)
     collector = DualCollector(env, policy(1.0), policy(reset_direction), max_forward_steps=horizon, max_reset_steps=horizon,
-                              min_reset_steps=1, total_frames=frames)
+                              min_reset_steps=1, total_frames=frames, event_keys=["irrecoverable"])
     cfg = config(tmp_path, "task.curriculum.index=0", "heat_up=1000")
     tmp_path.mkdir(parents=True)
     record = RunRecord(cfg, tmp_path, collector, trigger)

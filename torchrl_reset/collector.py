@@ -122,7 +122,7 @@ def termination_warning(env_name: str, what: str) -> str:
 
 def set_up_loop(collector, create_env_fn, forward_policy, reset_policy, *, max_forward_steps, max_reset_steps,
                 min_reset_steps, total_frames, max_events, trigger_key, reset_success_key, init_key,
-                exploration_type) -> EnvBase:
+                exploration_type, event_keys=()) -> EnvBase:
     """Checks and sets what every Algorithm 1 collector holds: H_f, H_r, the minimum reset length, the
     frame budget, the env, both policies, the triggers and the keys. Returns the env."""
     collector.max_forward_steps = check_int("max_forward_steps (H_f)", max_forward_steps)
@@ -156,7 +156,19 @@ def set_up_loop(collector, create_env_fn, forward_policy, reset_policy, *, max_f
         raise ValueError("reset_success_key is required: the env's at-initial-state flag ends reset episodes.")
     collector.trigger_key, collector.reset_success_key, collector.init_key = trigger_key, reset_success_key, init_key
     collector.exploration_type = exploration_type
+    collector.event_keys = check_event_keys(env, event_keys)
     return env
+
+
+def check_event_keys(env: EnvBase, event_keys) -> list:
+    """``event_keys`` as a list, each an entry of the env's observation spec (else a ValueError naming them)."""
+    event_keys = [event_keys] if isinstance(event_keys, str) else list(event_keys)
+    observed = set(env.full_observation_spec.keys(True, True))
+    missing = [key for key in event_keys if key not in observed]
+    if missing:
+        raise ValueError(f"event_keys {missing} are not entries of the env's observation spec "
+                         f"(it has {sorted(map(str, observed))}); an episode record can only copy what the env observes.")
+    return event_keys
 
 
 def stopped_scores(triggers, scored: TensorDictBase) -> list[float]:
@@ -247,6 +259,9 @@ class DualCollector(BaseCollector):
             its noise). They are saved by :meth:`state_dict`.
         exploration_type (ExplorationType): mode the policies run in. Defaults to ``RANDOM``.
         max_events (int): episode records kept until :meth:`pop_events` drains them. Defaults to 100_000.
+        event_keys (sequence of NestedKey): entries of the env's observation copied into each episode
+            record's ``state`` beside ``example_keys``, for instance an env's latched ``irrecoverable`` flag
+            (was the triggered state, or the state a reset episode ended in, already lost?). Defaults to none.
 
     Examples:
         >>> import torch
@@ -285,6 +300,7 @@ class DualCollector(BaseCollector):
         exploration_type: ExplorationType = ExplorationType.RANDOM,
         max_events: int = 100_000,
         restart_exploration: bool = True,
+        event_keys: Sequence[NestedKey] = (),
     ) -> None:
         super().__init__()
         if not isinstance(restart_exploration, bool):
@@ -296,7 +312,7 @@ class DualCollector(BaseCollector):
         env = set_up_loop(self, create_env_fn, forward_policy, reset_policy, max_forward_steps=max_forward_steps,
                           max_reset_steps=max_reset_steps, min_reset_steps=min_reset_steps, total_frames=total_frames,
                           max_events=max_events, trigger_key=trigger_key, reset_success_key=reset_success_key,
-                          init_key=init_key, exploration_type=exploration_type)
+                          init_key=init_key, exploration_type=exploration_type, event_keys=event_keys)
         if env.batch_size != torch.Size([]):
             raise ValueError(
                 f"DualCollector runs one unbatched environment (batch_size []), got batch_size {tuple(env.batch_size)}."
@@ -377,7 +393,7 @@ class DualCollector(BaseCollector):
                 "outcome": outcome,
                 "steps": self._phase_steps,
                 "frame": self._frames,
-                "state": state.select(*self.example_buffer.state_keys).clone(),
+                "state": state.select(*self.example_buffer.state_keys, *self.event_keys).clone(),
             }
             if scored is not None and self.triggers:
                 event["scores"] = stopped_scores(self.triggers, scored)

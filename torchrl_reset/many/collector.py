@@ -92,7 +92,7 @@ class BatchedDualCollector(BaseCollector):
 
     Keyword Args:
         max_forward_steps, max_reset_steps, min_reset_steps, reset_success_key, trigger_key, init_key,
-        exploration_type, max_events: as :class:`~torchrl_reset.DualCollector`.
+        exploration_type, max_events, event_keys: as :class:`~torchrl_reset.DualCollector`.
         total_frames (int): executed steps of all copies together after which iteration stops; -1 (default) never.
             The iteration that reaches it is completed (up to N - 1 steps past it), so that a run
             continued from there takes the same iterations as one that never stopped.
@@ -139,12 +139,13 @@ class BatchedDualCollector(BaseCollector):
         init_key: NestedKey = "is_init",
         exploration_type: ExplorationType = ExplorationType.RANDOM,
         max_events: int = 100_000,
+        event_keys: Sequence[NestedKey] = (),
     ) -> None:
         super().__init__()
         env = set_up_loop(self, create_env_fn, forward_policy, reset_policy, max_forward_steps=max_forward_steps,
                           max_reset_steps=max_reset_steps, min_reset_steps=min_reset_steps, total_frames=total_frames,
                           max_events=max_events, trigger_key=trigger_key, reset_success_key=reset_success_key,
-                          init_key=init_key, exploration_type=exploration_type)
+                          init_key=init_key, exploration_type=exploration_type, event_keys=event_keys)
         if env.batch_dims != 1:
             raise ValueError(f"BatchedDualCollector runs an env of batch size [N] (N copies of a task), got "
                              f"{tuple(env.batch_size)}; for one unbatched env use DualCollector.")
@@ -220,7 +221,7 @@ class BatchedDualCollector(BaseCollector):
                      "steps": int(self._phase_steps[i]),
                      # one run's step count: the copy's own, or every copy's together when they are one run
                      "frame": self._frames if self.shared_examples else int(self.frames_per_env[i]),
-                     "state": state.select(*keys).clone()}
+                     "state": state.select(*keys, *self.event_keys).clone()}
             if scored is not None and self.triggers:
                 event["scores"] = stopped_scores(self.triggers, scored)
             self._events.append(event)
