@@ -14,6 +14,7 @@ from torch import nn
 from torchrl.modules import OrnsteinUhlenbeckProcessModule, TanhModule
 from torchrl.objectives import SoftUpdate
 
+from absent_keys import ABSENT_KEYS, setting
 from torchrl_reset import ResetTriggerTransform, accel
 from torchrl_reset.many import RowResetTriggerTransform
 
@@ -52,7 +53,7 @@ def with_exploration(actor, action_spec, cfg: DictConfig) -> TensorDictSequentia
     noise = OrnsteinUhlenbeckProcessModule(
         spec=action_spec, eps_init=1.0, eps_end=1.0, annealing_num_steps=1,
         theta=settings["theta"], sigma=settings["sigma"], dt=settings["dt"],
-        safe=bool(settings.get("clip", True)),
+        safe=bool(settings.get("clip", ABSENT_KEYS["exploration.clip"])),  # task.exploration.* over exploration.*
     )
     return TensorDictSequential(actor, noise)
 
@@ -127,7 +128,7 @@ def make_reset_agent(cfg: DictConfig, obs_dim: int, action_spec) -> Agent:
 
 def releases_targets(cfg: DictConfig) -> bool:
     """``target_init: release``: the targets the release's network constructors leave (configs without the key: copies)."""
-    return OmegaConf.select(cfg, "target_init", default="copy") == "release"
+    return setting(cfg, "target_init") == "release"
 
 
 def draw_target(target, fresh: nn.Module) -> None:

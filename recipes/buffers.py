@@ -4,9 +4,10 @@ from __future__ import annotations
 from pathlib import Path
 
 import torch
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 from torchrl.data import LazyTensorStorage, ReplayBuffer
 
+from absent_keys import setting
 from agents import Agent
 from config_checks import arm_count
 from reset_agents import reset_kind
@@ -20,7 +21,7 @@ def make_buffers(cfg: DictConfig) -> tuple[ReplayBuffer, ReplayBuffer | ArmRepla
     with windows of one step) and the reset agent's (:meth:`~reset_agents.ResetAgentKind.replay`; ours': the
     n-step transform and the release's episode-first sampler). With ``arms``, ours' reset buffer is one per
     arm, sampled as one (:class:`ArmReplay`): the n-step windows need each arm's steps in time order."""
-    episodes_first = OmegaConf.select(cfg, "forward.sampling", default="transition") == "episode"
+    episodes_first = setting(cfg, "forward.sampling") == "episode"
     forward_rb = ReplayBuffer(storage=LazyTensorStorage(cfg.forward.buffer_size), batch_size=cfg.forward.batch_size,
                               sampler=EpisodeWindowSampler(1) if episodes_first else None)
     kind, arms = reset_kind(cfg), arm_count(cfg)
@@ -108,7 +109,7 @@ def buffer_keys(cfg: DictConfig, forward: Agent, reset: Agent) -> tuple[list, li
     fewer columns is faster and smaller.
     """
     forward_keys = [(key,) if isinstance(key, str) else tuple(key) for key in forward.loss.in_keys]
-    if OmegaConf.select(cfg, "forward.sampling", default="transition") == "episode":
+    if setting(cfg, "forward.sampling") == "episode":
         forward_keys.append(("collector", "traj_ids"))  # the episode-first sampler's episodes
     reset_keys = reset_kind(cfg).buffer_keys(cfg, reset, arms=arm_count(cfg) is not None)
     return list(dict.fromkeys(forward_keys)), list(dict.fromkeys(reset_keys))

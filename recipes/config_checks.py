@@ -10,6 +10,7 @@ from pathlib import Path
 from omegaconf import DictConfig, OmegaConf
 
 from torchrl_reset.accel import MATMUL_PRECISIONS
+from absent_keys import setting
 from reset_agents import KINDS, reset_kind
 from run_files import Checkpoints, no_intact_checkpoint
 from torchrl_reset_envs import TASKS
@@ -75,24 +76,23 @@ def validate(cfg: DictConfig) -> None:
     compile_agents = OmegaConf.select(cfg, "speed.compile", default=[])
     if not OmegaConf.is_list(compile_agents) or not set(compile_agents) <= {"forward", "reset"}:
         problems.append(f"speed.compile must be a list of agents among forward, reset; got {compile_agents!r}")
-    restart = OmegaConf.select(cfg, "exploration.restart", default="episode")
+    restart = setting(cfg, "exploration.restart")
     if restart not in ("never", "episode"):
         problems.append(f"exploration.restart must be never or episode, got {restart!r}")
-    order = OmegaConf.select(cfg, "update_order", default="joint")
+    order = setting(cfg, "update_order")
     if order not in ("release", "joint"):
         problems.append(f"update_order must be release or joint, got {order!r}")
-    sampling = OmegaConf.select(cfg, "forward.sampling", default="transition")
+    sampling = setting(cfg, "forward.sampling")
     if sampling not in ("episode", "transition"):
         problems.append(f"forward.sampling must be episode or transition, got {sampling!r}")
     if arm_count(cfg) is not None and sampling == "episode":
         problems.append("arms= interleaves the arms' steps in one forward buffer, where episode-first sampling "
                         "cannot see whole episodes: add forward.sampling=transition")
-    target_init = OmegaConf.select(cfg, "target_init", default="copy")
+    target_init = setting(cfg, "target_init")
     if target_init not in ("release", "copy"):
         problems.append(f"target_init must be release or copy, got {target_init!r}")
-    for flag in ("exploration.clip",):
-        if not isinstance(OmegaConf.select(cfg, flag, default=True), bool):
-            problems.append(f"{flag} must be true or false, got {OmegaConf.select(cfg, flag)!r}")
+    if not isinstance(setting(cfg, "exploration.clip"), bool):
+        problems.append(f"exploration.clip must be true or false, got {OmegaConf.select(cfg, 'exploration.clip')!r}")
     batched = OmegaConf.select(cfg, "seeds", default=None) is not None or arm_count(cfg) is not None
     if batched and restart == "never":
         problems.append("seeds= and arms= restart the exploration noise at every episode (their batched collector "

@@ -11,8 +11,9 @@ import time
 from functools import partial
 
 import torch
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 
+from absent_keys import setting
 from agents import Agent, with_exploration
 from buffers import buffer_keys
 from config_checks import arm_count, reset_horizon
@@ -56,7 +57,7 @@ def event_keys(env) -> list[str]:
 
 def restart_option(cfg: DictConfig) -> dict:
     """The collector's ``restart_exploration`` from ``exploration.restart`` (configs without it: ``episode``)."""
-    restart = OmegaConf.select(cfg, "exploration.restart", default="episode")
+    restart = setting(cfg, "exploration.restart")
     return {} if restart == "episode" else {"restart_exploration": False}
 
 
@@ -85,7 +86,7 @@ class Learner:
         self.matmul_precision, self.robot = matmul_precision, robot
         self.heat_up = int(cfg.heat_up)
         #: ``update_order: release``: a critic step, then an actor step (else one joint step on both losses)
-        self.release_order = OmegaConf.select(cfg, "update_order", default="joint") == "release"
+        self.release_order = setting(cfg, "update_order") == "release"
         compiled = set(cfg.speed.compile)
         self.losses = {name: torch.compile(agent.loss) if name in compiled else agent.loss
                        for name, agent in self.agents.items()}

@@ -12,6 +12,13 @@ changed (``ours (algo.initial_logit_bias=-4)`` beside ``ours (paper's setting)``
 
     python recipes/report.py results/100000 results/options/initial_logit_bias-4 --budget 100000
 
+A key that an older run's ``config.yaml`` lacks is read as what its absence meant when the run ran
+(``absent_keys.py``), not as today's default. ``NAME=PATH`` names the runs under ``PATH``: they are one
+setting, labelled ``NAME`` (runs of two versions of the code side by side, which may differ in more
+than their configs), and ``table1.md`` lists what each named folder set apart from the paper preset:
+
+    python recipes/report.py tier1=results/100000 release=results/100000-release --budget 100000
+
 - ``table1.md``: per task and algorithm, the mean and standard deviation over seeds of the average
   forward return, manual resets, forward share and reset success rate, beside the paper's numbers;
 - ``fig3_<task>.png``: evaluation forward return and cumulative manual resets against steps, each algorithm's
@@ -104,6 +111,7 @@ class RunFolder:
         self.task, self.algo = self.summary["task"], self.summary["algo"]
         self.p_thresh = self.summary.get("p_thresh")
         self.setting = ""  # what sets this run apart from others of its task and algo (assign_settings)
+        self.source: str | None = None  # the name given to the folder it was found under (find_runs)
         if budget is not None:
             self.summary = {**self.summary, **self._at_budget(budget)}
         elif not self.summary.get("finished", True):
@@ -223,25 +231,60 @@ def assign_settings(runs: list[RunFolder]) -> None:
 
     for (task, algo), members in _by(runs, "task", "algo").items():
         defaults = recipe_defaults(task, algo)
-        settings = []
-        for run in members:
-            own = {}
-            if run.config is not None:
-                own = _flatten(OmegaConf.to_container(run.config, resolve=False))
-            settings.append({**defaults, **own})
-        keys = sorted({k for s in settings for k in s})
-        missing = object()
-        differ = [k for k in keys if len({repr(s.get(k, missing)) for s in settings}) > 1]
-        for run, own in zip(members, settings):
-            # where the defaults are known, name only what this run changed from them
-            changed = [k for k in differ if not defaults or repr(own.get(k, missing)) != repr(defaults.get(k, missing))]
-            if not differ:
-                run.setting = ""
-            elif not changed:
-                run.setting = PAPER_SETTING
-            else:
-                run.setting = ", ".join(
-                    f"{k}={'(unset)' if own.get(k, missing) is missing else _value_text(own[k])}" for k in changed)
+        settings = [run_settings(run, defaults) for run in members]
+        # a named folder is its own setting; within it, runs are told apart by what differs between them
+        for source in dict.fromkeys(run.source for run in members):
+            group = [(run, own) for run, own in zip(members, settings) if run.source == source]
+            labels = _setting_labels([own for _, own in group], defaults)
+            for (run, _), label in zip(group, labels):
+                if source is not None:  # "NAME", or "NAME, key=value" for what this run changed inside it
+                    label = ", ".join(filter(None, [source, "" if label == PAPER_SETTING else label]))
+                run.setting = label
+
+
+def run_settings(run: RunFolder, defaults: dict) -> dict:
+    """What ``run`` ran with, flattened: its ``config.yaml``, a key it lacks read as what its absence meant
+    when it ran (``absent_keys.ABSENT_KEYS``: the behaviour before the key existed), any other key as the
+    recipe's default."""
+    from absent_keys import ABSENT_KEYS
+    from omegaconf import OmegaConf
+
+    if run.config is None:
+        return dict(defaults)
+    return {**defaults, **ABSENT_KEYS, **_flatten(OmegaConf.to_container(run.config, resolve=False))}
+
+
+def _setting_labels(settings: list[dict], defaults: dict) -> list[str]:
+    """For runs of one task and algorithm: ``""`` where all agree, else each run's ``key=value`` pairs that
+    differ between them and from ``defaults`` (``PAPER_SETTING`` where it changed none of them)."""
+    keys = sorted({k for s in settings for k in s})
+    missing = object()
+    differ = [k for k in keys if len({repr(s.get(k, missing)) for s in settings}) > 1]
+    labels = []
+    for own in settings:
+        # where the defaults are known, name only what this run changed from them
+        changed = [k for k in differ if not defaults or repr(own.get(k, missing)) != repr(defaults.get(k, missing))]
+        if not differ:
+            labels.append("")
+        elif not changed:
+            labels.append(PAPER_SETTING)
+        else:
+            labels.append(", ".join(
+                f"{k}={'(unset)' if own.get(k, missing) is missing else _value_text(own[k])}" for k in changed))
+    return labels
+
+
+def named_settings(runs: list[RunFolder]) -> list[str]:
+    """For each named folder, per algorithm, what its runs set apart from the recipe's paper preset."""
+    lines = []
+    for (source, task, algo), members in sorted(_by([r for r in runs if r.source], "source", "task", "algo").items()):
+        defaults = recipe_defaults(task, algo)
+        changed = sorted({f"{k}={_value_text(own[k])}" for own in (run_settings(r, defaults) for r in members)
+                          for k in own if defaults and k in defaults and repr(own[k]) != repr(defaults[k])
+                          and not any(k == n or k.startswith(f"{n}.") for n in NOT_A_SETTING)})
+        lines.append(f"- {source}, {TASK_TITLES.get(task, task)}, {ALGO_TITLES.get(algo, algo)}: "
+                     + (", ".join(changed) if changed else "the paper preset's settings"))
+    return lines
 
 
 def _is_paper_setting(setting: str) -> bool:
@@ -267,15 +310,20 @@ def _float(value: str) -> float:
         return {"True": 1.0, "False": 0.0}.get(value, math.nan)
 
 
-def find_runs(paths: list[Path], budget: int | None = None) -> list[RunFolder]:
-    """Run folders: those with a ``summary.json``, and runs still going (``config.yaml`` and ``progress.csv``)."""
-    folders = set()
+def find_runs(paths: list[Path], budget: int | None = None, names: dict[Path, str] | None = None) -> list[RunFolder]:
+    """Run folders: those with a ``summary.json``, and runs still going (``config.yaml`` and ``progress.csv``).
+    ``names``: a name for some of ``paths``; the runs found under a named path are that name's setting."""
+    folders, source = set(), {}
     for path in paths:
+        found = set()
         if path.is_file():
-            folders.add(path.parent)
-            continue
-        folders |= {p.parent for p in path.rglob("summary.json")}
-        folders |= {p.parent for p in path.rglob("progress.csv") if (p.parent / "config.yaml").exists()}
+            found.add(path.parent)
+        else:
+            found |= {p.parent for p in path.rglob("summary.json")}
+            found |= {p.parent for p in path.rglob("progress.csv") if (p.parent / "config.yaml").exists()}
+        if names and path in names:
+            source.update(dict.fromkeys(found, names[path]))
+        folders |= found
     folders = sorted(folders)
     if not folders:
         raise SystemExit(f"no summary.json under {', '.join(map(str, paths))}: nothing to report.")
@@ -283,6 +331,7 @@ def find_runs(paths: list[Path], budget: int | None = None) -> list[RunFolder]:
     for folder in folders:
         try:
             runs.append(RunFolder(folder, budget))
+            runs[-1].source = source.get(folder)
         except ValueError as err:
             if budget is None or "no progress.csv row" not in str(err):
                 raise
@@ -366,6 +415,12 @@ def table1(runs: list[RunFolder]) -> str:
         "",
         f"Mean ± standard deviation over seeds (population form: divided by the number of seeds){note}; the paper's numbers are 1.5M-step means of 5 seeds.",
     ]
+    named = named_settings(runs)
+    if named:
+        lines += ["", "What each named folder's runs set apart from the paper preset in their config.yaml (the recipe's "
+                  "defaults; a key an older config lacks read as what its absence meant then). What changed in the code "
+                  "without a key, such as a task's model, is not listed: each run's code.jsonl names its commits.",
+                  *named]
     if short:
         lines.append("Left out of the means, still short of the budget: " + "; ".join(
             f"{_title(r.algo, r.setting)} seed {r.summary['seed']} at {r.summary.get('steps')} steps"
@@ -832,8 +887,9 @@ def _curriculum_label(run: RunFolder) -> str:
     return "observation entry before the trigger"
 
 
-def report(paths: list[Path], out: Path | None = None, budget: int | None = None) -> dict[str, list[Path]]:
-    runs = find_runs(paths, budget)
+def report(paths: list[Path], out: Path | None = None, budget: int | None = None,
+           names: dict[Path, str] | None = None) -> dict[str, list[Path]]:
+    runs = find_runs(paths, budget, names)
     out = Path(out) if out is not None else (paths[0] if paths[0].is_dir() else paths[0].parent) / "report"
     out.mkdir(parents=True, exist_ok=True)
     table_path = out / "table1.md"
@@ -844,14 +900,29 @@ def report(paths: list[Path], out: Path | None = None, budget: int | None = None
 
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("paths", nargs="+", type=Path, help="run folders, or folders holding run folders")
+    parser.add_argument("paths", nargs="+", type=str,
+                        help="run folders, or folders holding run folders; NAME=PATH names the runs under PATH "
+                             "(one setting, labelled NAME; table1.md lists what it set apart from the paper preset)")
     parser.add_argument("--out", type=Path, default=None, help="where to write (default: <first path>/report)")
     parser.add_argument("--budget", type=int, default=None,
                         help="compare every run as it stood at this many steps (default: at its end)")
     args = parser.parse_args(argv)
     if args.budget is not None and args.budget < 1:
         parser.error(f"--budget must be a positive number of steps, got {args.budget}")
-    written = report(args.paths, args.out, args.budget)
+    paths, names = [], {}
+    for given in args.paths:
+        name, sep, rest = given.partition("=")
+        if sep and name and "/" not in name and not Path(given).exists():
+            if not rest:
+                parser.error(f"{given!r}: NAME=PATH needs a path after '='")
+            paths.append(Path(rest))
+            names[Path(rest)] = name
+        else:
+            paths.append(Path(given))
+    for path in paths:
+        if not path.exists():
+            parser.error(f"{path} does not exist")
+    written = report(paths, args.out, args.budget, names)
     print(Path(written["table"][0]).read_text())
     for kind in ("fig3", "fig4", "fig5", "diagnostics"):
         for path in written[kind]:

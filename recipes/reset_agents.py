@@ -16,6 +16,7 @@ from omegaconf import DictConfig, OmegaConf
 from torch import nn
 from torchrl.data import LazyTensorStorage, ReplayBuffer
 
+from absent_keys import setting
 from torchrl_reset import EpisodeWindowSampler, NStepStateTransform, ResetTriggerTransform, success_probability
 from torchrl_reset.ensemble import PRIOR_BIAS_DRAWS
 from torchrl_reset.many import RunDDPGUpdate, RunRCEUpdate
@@ -98,7 +99,7 @@ class RCEKind(ResetAgentKind):
         model = parts.ensemble(
             obs_dim, act_dim, num_members=cfg.algo.num_members, hidden_sizes=tuple(cfg.hidden_sizes),
             prior_scale=cfg.algo.prior_scale,
-            prior_bias_draw=OmegaConf.select(cfg, "algo.prior_bias_draw", default="fan_in"),
+            prior_bias_draw=setting(cfg, "algo.prior_bias_draw"),
         )
         _pessimistic_start(cfg, model)  # not the paper's, when set; before the targets copy the networks
         loss = parts.rce_loss(actor, model, gamma=cfg.gamma, n_steps=cfg.algo.n_steps,
@@ -158,7 +159,7 @@ class RCEKind(ResetAgentKind):
         sampling = OmegaConf.select(cfg, "algo.nstep_sampling", default="episode")
         if sampling not in ("episode", "transition"):
             problems.append(f"algo.nstep_sampling must be episode or transition, got {sampling!r}")
-        draw = OmegaConf.select(cfg, "algo.prior_bias_draw", default="fan_in")
+        draw = setting(cfg, "algo.prior_bias_draw")
         if draw not in PRIOR_BIAS_DRAWS:
             problems.append(f"algo.prior_bias_draw must be one of {', '.join(PRIOR_BIAS_DRAWS)}, got {draw!r}")
         return problems

@@ -626,6 +626,37 @@ def test_keys_the_recipe_does_not_define_are_refused_and_those_its_groups_add_ar
     validate(config(tmp_path, "preset=quick", "algo=lnt", "algo.reward_bounds=[0,1]"))
 
 
+@pytest.mark.parametrize("written_before", [False, True], ids=["today", "before-the-release-keys"])
+def test_a_config_without_the_release_keys_runs_as_the_recipe_ran_before_them(tmp_path, written_before):
+    """The six keys that made the recipe follow the authors' release (docs/release-audit.md) arrived with the
+    earlier behaviour as their fallback: a config.yaml written before them (an older run resumed) builds the
+    run it described, not today's preset."""
+    from omegaconf import open_dict
+    from torchrl_reset import EpisodeWindowSampler
+
+    cfg = config(tmp_path, "algo=ours", "task=peg_insertion_insert", "total_steps=60")
+    if written_before:
+        with open_dict(cfg):
+            for section, key in (("algo", "prior_bias_draw"), ("exploration", "restart"), ("exploration", "clip"),
+                                 (None, "update_order"), ("forward", "sampling"), (None, "target_init")):
+                del (cfg if section is None else cfg[section])[key]
+    run = single_run.build_run(cfg, "ieee")
+    try:
+        release = not written_before
+        assert run.reset.model.prior_bias_draw == ("xavier" if release else "fan_in")
+        assert run.collector.restart_exploration is (not release)  # the noise restarted at every episode
+        assert run.collector.forward_policy[-1].safe is (not release)  # the noisy action projected onto the box
+        assert run.learner.release_order is release  # critic then actor, else one joint step
+        assert isinstance(run.forward_rb.sampler, EpisodeWindowSampler) is release
+        # the forward actor's target: an independent draw (the release's constructors), else a copy
+        pairs = zip(run.forward.loss.actor_network_params.flatten_keys().values(),
+                    run.forward.loss.target_actor_network_params.flatten_keys().values())
+        assert all(torch.equal(a, b) for a, b in pairs) is (not release)
+    finally:
+        run.collector.shutdown()
+        run.eval_env.close()
+
+
 @pytest.mark.parametrize("algo, own", [
     ("ours", {("collector", "traj_ids")}),  # the n-step transform's trajectory boundaries
     ("lnt", {("next", "reset_reward"), ("next", "reset_success")}),  # what LNT's reward is made from

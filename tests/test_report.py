@@ -203,6 +203,33 @@ def test_runs_with_different_settings_are_kept_apart_and_named_by_what_they_chan
         tmp_path / "alone" / "table1.md").read_text()
 
 
+def test_a_key_an_older_config_lacks_means_what_its_absence_meant_and_a_named_folder_is_one_setting(tmp_path):
+    task = "peg_insertion_insert"
+    # today's config, and one written before algo.prior_bias_draw existed: that run drew its priors' biases
+    # U(+-1/sqrt(fan_in)) (the key arrived with that fallback), so it is not today's preset (xavier)
+    new = fabricate(tmp_path / "new", task, "ours", 0, 0.1, 2.0, 10, 0.3, 0.9)
+    (new / "config.yaml").write_text(_config_yaml("seed=0"))
+    old = fabricate(tmp_path / "old", task, "ours", 0, 0.1, 4.0, 30, 0.5, 1.0)
+    (old / "config.yaml").write_text(_config_yaml("seed=0", drop="algo.prior_bias_draw"))
+    option = fabricate(tmp_path / "old", task, "ours", 1, 0.1, 1.0, 50, 0.1, 0.2)
+    (option / "config.yaml").write_text(_config_yaml("seed=1", "algo.initial_logit_bias=-4", drop="algo.prior_bias_draw"))
+    settings = {r.folder: r.setting for r in report.find_runs([tmp_path / "new", tmp_path / "old"])}
+    assert settings == {new: report.PAPER_SETTING, old: "algo.prior_bias_draw=fan_in",
+                        option: "algo.initial_logit_bias=-4, algo.prior_bias_draw=fan_in"}
+    # NAME=PATH: the runs under PATH are the setting NAME, told apart inside it by what differs between them
+    report.main([f"release={tmp_path / 'new'}", f"before={tmp_path / 'old'}", "--out", str(tmp_path / "out")])
+    table = (tmp_path / "out" / "table1.md").read_text()
+    assert "| peg-insertion (insert) | ours (release) | 0.1 | 1 | 1000 | 2.00 ± 0.00 | 10 ± 0 |" in table
+    assert "| peg-insertion (insert) | ours (before) | 0.1 | 1 | 1000 | 4.00 ± 0.00 | 30 ± 0 |" in table
+    assert ("| peg-insertion (insert) | ours (before, algo.initial_logit_bias=-4) | 0.1 | 1 | 1000 | 1.00 ± 0.00 | "
+            "50 ± 0 |") in table
+    assert "- release, peg-insertion (insert), ours: the paper preset's settings" in table
+    assert ("- before, peg-insertion (insert), ours: algo.initial_logit_bias=-4, algo.prior_bias_draw=fan_in"
+            in table)
+    with pytest.raises(SystemExit):
+        report.main([f"release={tmp_path / 'nowhere'}"])
+
+
 def write_run(root: Path, algo: str, seed: int, task: str = "peg_insertion_insert", steps: int = 4000,
               config: str | None = None, **tables) -> Path:
     """A run folder with a summary and the given tables (``progress=(header, rows)``, ...), named by file."""
