@@ -226,9 +226,8 @@ def _value_text(value) -> str:
 def assign_settings(runs: list[RunFolder]) -> None:
     """Give each run the settings that set it apart from the other runs of its task and algorithm
     (``run.setting``: ``""`` where all agree, ``"paper's setting"`` for the recipe's defaults, else
-    ``key=value`` overrides such as ``algo.initial_logit_bias=-4``), so that the report keeps them apart."""
-    from omegaconf import OmegaConf
-
+    ``key=value`` overrides such as ``algo.initial_logit_bias=-4``; runs under a named folder: its name, then
+    what differs between them), so that the report keeps them apart."""
     for (task, algo), members in _by(runs, "task", "algo").items():
         defaults = recipe_defaults(task, algo)
         settings = [run_settings(run, defaults) for run in members]
