@@ -10,7 +10,7 @@ task and algorithm that ran with different settings (anything in their ``config.
 the length, where and how fast they ran and what they logged) are kept apart, labelled with what they
 changed (``ours (algo.initial_logit_bias=-4)`` beside ``ours (paper's setting)``), never averaged together:
 
-    python recipes/report.py results/100000 results/options/initial_logit_bias-4 --budget 100000
+    python recipes/report.py runs/paper runs/options/initial_logit_bias-4 --budget 100000
 
 A key that an older run's ``config.yaml`` lacks is read as what its absence meant when the run ran
 (``absent_keys.py``), not as today's default. ``NAME=PATH`` names the runs under ``PATH``: they are one
@@ -234,7 +234,7 @@ def assign_settings(runs: list[RunFolder]) -> None:
         # a named folder is its own setting; within it, runs are told apart by what differs between them
         for source in dict.fromkeys(run.source for run in members):
             group = [(run, own) for run, own in zip(members, settings) if run.source == source]
-            labels = _setting_labels([own for _, own in group], defaults)
+            labels = _setting_labels([own for _, own in group], defaults, among=source is not None)
             for (run, _), label in zip(group, labels):
                 if source is not None:  # "NAME", or "NAME, key=value" for what this run changed inside it
                     label = ", ".join(filter(None, [source, "" if label == PAPER_SETTING else label]))
@@ -250,19 +250,24 @@ def run_settings(run: RunFolder, defaults: dict) -> dict:
 
     if run.config is None:
         return dict(defaults)
-    return {**defaults, **ABSENT_KEYS, **_flatten(OmegaConf.to_container(run.config, resolve=False))}
+    absent = {k: v for k, v in ABSENT_KEYS.items() if k in defaults}  # keys of this task and algorithm only
+    return {**defaults, **absent, **_flatten(OmegaConf.to_container(run.config, resolve=False))}
 
 
-def _setting_labels(settings: list[dict], defaults: dict) -> list[str]:
+def _setting_labels(settings: list[dict], defaults: dict, among: bool = False) -> list[str]:
     """For runs of one task and algorithm: ``""`` where all agree, else each run's ``key=value`` pairs that
-    differ between them and from ``defaults`` (``PAPER_SETTING`` where it changed none of them)."""
+    differ from ``defaults`` (``PAPER_SETTING`` where none does; where the defaults are unknown, the pairs
+    that differ between the runs). ``among``: only the pairs that also differ between the runs (inside a
+    named folder, whose name says the rest)."""
     keys = sorted({k for s in settings for k in s})
     missing = object()
     differ = [k for k in keys if len({repr(s.get(k, missing)) for s in settings}) > 1]
     labels = []
     for own in settings:
-        # where the defaults are known, name only what this run changed from them
-        changed = [k for k in differ if not defaults or repr(own.get(k, missing)) != repr(defaults.get(k, missing))]
+        # where the defaults are known, everything this run changed from them, also what all runs changed
+        # alike (runs of an older preset beside one option are not the paper's setting)
+        candidates = differ if among or not defaults else sorted(set(own) | set(defaults))
+        changed = [k for k in candidates if not defaults or repr(own.get(k, missing)) != repr(defaults.get(k, missing))]
         if not differ:
             labels.append("")
         elif not changed:

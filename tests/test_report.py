@@ -216,6 +216,16 @@ def test_a_key_an_older_config_lacks_means_what_its_absence_meant_and_a_named_fo
     settings = {r.folder: r.setting for r in report.find_runs([tmp_path / "new", tmp_path / "old"])}
     assert settings == {new: report.PAPER_SETTING, old: "algo.prior_bias_draw=fan_in",
                         option: "algo.initial_logit_bias=-4, algo.prior_bias_draw=fan_in"}
+    # the older runs alone: what both changed alike still keeps them from being the paper's setting
+    settings = {r.folder: r.setting for r in report.find_runs([tmp_path / "old"])}
+    assert settings == {old: "algo.prior_bias_draw=fan_in", option: "algo.initial_logit_bias=-4, algo.prior_bias_draw=fan_in"}
+    # a key of another algorithm is not read into LNT's settings (LNT has no priors): only its own absent keys
+    lnt_new = fabricate(tmp_path / "lnt", task, "lnt", 0, 0.1, 2.0, 10, 0.3, 0.9)
+    (lnt_new / "config.yaml").write_text(_config_yaml("seed=0", "algo=lnt"))
+    lnt_old = fabricate(tmp_path / "lnt", task, "lnt", 1, 0.1, 2.0, 10, 0.3, 0.9)
+    (lnt_old / "config.yaml").write_text(_config_yaml("seed=1", "algo=lnt", drop="forward.sampling"))
+    settings = {r.folder: r.setting for r in report.find_runs([tmp_path / "lnt"])}
+    assert settings == {lnt_new: report.PAPER_SETTING, lnt_old: "forward.sampling=transition"}
     # NAME=PATH: the runs under PATH are the setting NAME, told apart inside it by what differs between them
     report.main([f"release={tmp_path / 'new'}", f"before={tmp_path / 'old'}", "--out", str(tmp_path / "out")])
     table = (tmp_path / "out" / "table1.md").read_text()
