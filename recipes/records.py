@@ -8,6 +8,7 @@ Table 1 metrics).
 from __future__ import annotations
 
 import json
+import logging
 import math
 import time
 from pathlib import Path
@@ -23,6 +24,8 @@ from reset_agents import reset_kind
 from diagnostics import DIAGNOSTIC_FIELDS, RESET_FIELDS, ResetDistances, TriggerScores, probe_classifier
 from run_files import CsvTable, code_version, processor_name, reset_outcomes_by_quarter
 from task_envs import safety_counters
+
+log = logging.getLogger("torchrl_reset.train")
 
 __all__ = ["PROGRESS_FIELDS", "EVAL_FIELDS", "TRIGGER_FIELDS", "RunRecord", "make_loggers"]
 
@@ -77,10 +80,14 @@ class RunRecord:
 
     def begin(self, history: dict | None) -> None:
         """Continue from a checkpoint's ``history`` (rows written after it are dropped), or start afresh."""
+        replaced = None  # the last step logged after the checkpoint by the process that stopped (run again now)
         if history is not None:
             self.history = history
-            for table in self.tables:
-                table.truncate_after(self.collector.frames)
+            dropped = [table.truncate_after(self.collector.frames) for table in self.tables]
+            replaced = max((d for d in dropped if d is not None), default=None)
+            if replaced is not None:
+                log.warning("resuming at step %d: the rows logged after this checkpoint by the process that stopped "
+                            "(to step %d) are dropped; those steps are run again", self.collector.frames, replaced)
         else:
             # a fresh start: tables left by an earlier attempt that never checkpointed start over
             for table in self.tables:
@@ -91,8 +98,11 @@ class RunRecord:
         # the code each stretch of the run ran at (a resumed run appends its own line); the summary
         # names this stretch's, read now: the work tree may change while the run goes on
         self.code = code_version()
+        stretch = {"from_step": self.collector.frames, **self.code}
+        if replaced is not None:  # the lost stretch, kept on record: steps from_step to this one ran twice
+            stretch["replaces_to_step"] = replaced
         with open(self.run_dir / "code.jsonl", "a") as f:
-            f.write(json.dumps({"from_step": self.collector.frames, **self.code}) + "\n")
+            f.write(json.dumps(stretch) + "\n")
         self.loggers = make_loggers(self.cfg, self.run_dir)
         # wall time of the steps of each phase once its agent updates (env step, policy, trigger, buffer, update)
         self.step_time = self.history.setdefault("step_time", {"forward": [0.0, 0], "reset": [0.0, 0]})

@@ -436,12 +436,16 @@ class CsvTable:
         self.path = Path(path)
         self.fields = fields
 
-    def truncate_after(self, frames: int) -> None:
+    def truncate_after(self, frames: int) -> int | None:
+        """Drops the rows logged after step ``frames``; returns the step of the last one dropped (None if none)."""
         if not self.path.exists():
-            return
+            return None
         with open(self.path, newline="") as f:
-            rows = [row for row in csv.DictReader(f) if int(float(row["frames"])) <= frames]
-        self._rewrite(rows)
+            rows = list(csv.DictReader(f))
+        kept = [row for row in rows if int(float(row["frames"])) <= frames]
+        dropped = [int(float(row["frames"])) for row in rows if int(float(row["frames"])) > frames]
+        self._rewrite(kept)
+        return max(dropped, default=None)
 
     def _rewrite(self, rows) -> None:
         tmp = self.path.with_suffix(".tmp")

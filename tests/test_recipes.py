@@ -134,11 +134,20 @@ def test_kill_9_loses_at_most_the_steps_since_the_last_checkpoint(tmp_path):
     saved = int(json.loads((run_dir / "checkpoints" / latest.read_text() / "meta.json").read_text())["frames"])
     assert saved >= 300
     logged = [int(r["frames"]) for r in rows(run_dir / "progress.csv")]
+    # the last step any table logged after the checkpoint: the stretch the killed process loses
+    lost = max((int(r["frames"]) for name in ("progress.csv", "eval.csv", "triggers.csv", "resets.csv",
+                                               "diagnostics.csv") if (run_dir / name).exists()
+                for r in rows(run_dir / name) if int(r["frames"]) > saved), default=None)
     summary = train.train(config(run_dir, "task=cliff_cheetah", "algo=ours", f"total_steps={saved + 100}", "resume=true"))
     assert summary["steps"] == saved + 100
     resumed = [int(r["frames"]) for r in rows(run_dir / "progress.csv")]
     # rows logged after the checkpoint by the killed process are dropped, then the run continues
     assert resumed == [f for f in logged if f <= saved] + [saved + 50, saved + 100]
+    # code.jsonl keeps the lost stretch on record: this stretch starts at the checkpoint and replaces the
+    # steps the killed process had logged beyond it
+    stretches = [json.loads(line) for line in (run_dir / "code.jsonl").read_text().splitlines()]
+    assert [s["from_step"] for s in stretches] == [0, saved]
+    assert stretches[1].get("replaces_to_step") == lost and "replaces_to_step" not in stretches[0]
 
 
 def test_sigterm_ends_the_run_after_its_step_with_a_checkpoint_and_a_summary(tmp_path):

@@ -21,7 +21,7 @@ sys.path.insert(0, str(RECIPES))
 
 import train  # noqa: E402
 from config_checks import ConfigError, should_resume, validate  # noqa: E402
-from run_files import Checkpoints, reset_outcomes_by_quarter, stop_on_signals  # noqa: E402
+from run_files import Checkpoints, CsvTable, reset_outcomes_by_quarter, stop_on_signals  # noqa: E402
 
 TINY = [
     "hidden_sizes=[16,16]", "heat_up=40", "task.forward_horizon=20", "forward.batch_size=16", "reset.batch_size=16",
@@ -110,6 +110,16 @@ def test_a_resume_reads_each_checkpoint_file_once_and_again_after_any_write(tmp_
                                                 "was written)"]
     assert Checkpoints(tmp_path).survey()[0] is None  # a file written just now is read every time
     assert read.count("state.pt") == 3
+
+
+def test_a_table_drops_the_rows_after_a_checkpoint_and_says_how_far_they_went(tmp_path):
+    table = CsvTable(tmp_path / "progress.csv", ["frames", "value"])
+    for frames in (50, 100, 150, 200, 250):
+        table.append({"frames": frames, "value": frames / 10})
+    assert table.truncate_after(150) == 250  # 200 and 250 logged after a checkpoint at 150
+    assert [r["frames"] for r in rows(tmp_path / "progress.csv")] == ["50", "100", "150"]
+    assert table.truncate_after(150) is None  # nothing past it any more
+    assert CsvTable(tmp_path / "none.csv", ["frames"]).truncate_after(0) is None
 
 
 def test_a_checkpoint_written_before_manifests_counts_and_resume_auto_agrees_with_latest(tmp_path):
