@@ -365,11 +365,14 @@ def test_a_short_dual_collector_loop_survives_protective_stops_against_the_fake_
     events = []
     try:
         steps = 0
-        for batch in collector:
-            steps += batch.numel()
-            events += collector.pop_events()
+        # a protective stop ends its episode (a termination): the collector says so, once
+        with pytest.warns(UserWarning, match="UR3Env terminated an episode by itself") as warned:
+            for batch in collector:
+                steps += batch.numel()
+                events += collector.pop_events()
     finally:
         collector.shutdown()
+    assert sum("terminated an episode by itself" in str(w.message) for w in warned) == 1
     halted_in = {event["phase"] for event in events if event["outcome"] == "terminated"}
     assert halted_in == {"forward", "reset"}
     c = collector.counters
