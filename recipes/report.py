@@ -694,14 +694,10 @@ def fig5_figure(task: str, algo: str, setting: str, members: list[RunFolder]):
 def cliff_edge(run: RunFolder) -> float | None:
     """The cliff's edge on Fig. 5's axis: the task's ``edge`` where Fig. 5 plots the x position (observation
     entry 0, the cliff tasks' curriculum), else None."""
-    config = run.folder / "config.yaml"
-    if not config.exists():
-        return None
     from omegaconf import OmegaConf
-    from torchrl_reset_envs import TASKS
+    from stretches import run_task
 
-    cfg = OmegaConf.load(config)
-    spec = TASKS.get(str(OmegaConf.select(cfg, "task.name")))
+    cfg, spec = run_task(run.folder)
     edge = getattr(getattr(spec, "env_class", None), "edge", None)
     return None if edge is None or OmegaConf.select(cfg, "task.curriculum.index") != 0 else float(edge)
 

@@ -24,7 +24,7 @@ import csv
 import statistics
 from pathlib import Path
 
-__all__ = ["stretches", "markdown"]
+__all__ = ["stretches", "markdown", "run_task", "has_irrecoverable_states"]
 
 
 def _rows(path: Path) -> list[dict]:
@@ -40,15 +40,22 @@ def _at(progress: list[dict], frames: int) -> dict | None:
     return before[-1] if before else None
 
 
-def has_irrecoverable_states(run: Path) -> bool:
-    """Whether the run's task (its ``config.yaml``'s ``task.name``) has irrecoverable states (the cliff tasks)."""
-    if not (Path(run) / "config.yaml").exists():
-        return False
+def run_task(run: Path):
+    """A run folder's ``config.yaml`` and its task's spec (``TASKS[task.name]``): ``(cfg, spec)``, with
+    ``(None, None)`` for a folder without a config and ``spec`` None for a task this code does not know."""
+    config = Path(run) / "config.yaml"
+    if not config.exists():
+        return None, None
     from omegaconf import OmegaConf
     from torchrl_reset_envs import TASKS
 
-    spec = TASKS.get(str(OmegaConf.select(OmegaConf.load(Path(run) / "config.yaml"), "task.name")))
-    return bool(getattr(spec, "has_irrecoverable", False))
+    cfg = OmegaConf.load(config)
+    return cfg, TASKS.get(str(OmegaConf.select(cfg, "task.name")))
+
+
+def has_irrecoverable_states(run: Path) -> bool:
+    """Whether the run's task (its ``config.yaml``'s ``task.name``) has irrecoverable states (the cliff tasks)."""
+    return bool(getattr(run_task(run)[1], "has_irrecoverable", False))
 
 
 def _count(row: dict | None, column: str) -> int:
