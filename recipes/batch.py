@@ -29,7 +29,7 @@ from torchrl.envs.utils import ExplorationType, exploration_type
 
 from agents import reset_tau
 from config_checks import ConfigError, validate
-from learner import NonFiniteLoss, event_keys
+from learner import NonFiniteLoss, event_keys, restart_option
 from reset_agents import reset_kind
 from run_files import RunInterrupted, run_folder_lock, stop_on_signals
 from single_run import TrainingDiverged, build_run, seed_process, set_up_process
@@ -383,7 +383,7 @@ def batched_collector(runs: list, updates: BatchedUpdates, streams: list[RunRNG]
         env, policy(updates.forward, "forward"), policy(updates.reset, "reset"),
         max_forward_steps=int(cfg.task.forward_horizon), max_reset_steps=reset_horizon(cfg),
         min_reset_steps=int(cfg.reset.min_steps), max_frames_per_env=[int(r.cfg.total_steps) for r in runs],
-        example_buffers=[r.collector.example_buffer for r in runs], event_keys=event_keys(env))
+        example_buffers=[r.collector.example_buffer for r in runs], event_keys=event_keys(env), **restart_option(cfg))
     for s, run in enumerate(runs):
         with streams[s].active():
             collector.view(s).load_state_dict(run.collector.state_dict())

@@ -20,11 +20,21 @@ def make_buffers(cfg: DictConfig) -> tuple[ReplayBuffer, ReplayBuffer | ArmRepla
     """The forward agent's buffer (with ``forward.sampling: episode``, the release's episode-first sampler
     with windows of one step) and the reset agent's (:meth:`~reset_agents.ResetAgentKind.replay`; ours': the
     n-step transform and the release's episode-first sampler). With ``arms``, ours' reset buffer is one per
-    arm, sampled as one (:class:`ArmReplay`): the n-step windows need each arm's steps in time order."""
+    arm, sampled as one (:class:`ArmReplay`): the n-step windows need each arm's steps in time order; so is
+    the forward buffer with episode-first sampling, whose episodes are each arm's runs of consecutive steps
+    (the arms' capacity that of one run's buffer, split evenly)."""
     episodes_first = setting(cfg, "forward.sampling") == "episode"
-    forward_rb = ReplayBuffer(storage=LazyTensorStorage(cfg.forward.buffer_size), batch_size=cfg.forward.batch_size,
-                              sampler=EpisodeWindowSampler(1) if episodes_first else None)
     kind, arms = reset_kind(cfg), arm_count(cfg)
+
+    def forward_buffer(size: int, batch_size: int | None) -> ReplayBuffer:
+        return ReplayBuffer(storage=LazyTensorStorage(size), batch_size=batch_size,
+                            sampler=EpisodeWindowSampler(1) if episodes_first else None)
+
+    if arms is not None and episodes_first:  # each arm's episodes whole, in a buffer of its own
+        size = -(-int(cfg.forward.buffer_size) // arms)
+        forward_rb = ArmReplay([forward_buffer(size, None) for _ in range(arms)], batch_size=cfg.forward.batch_size)
+    else:
+        forward_rb = forward_buffer(int(cfg.forward.buffer_size), cfg.forward.batch_size)
     if arms is None or not kind.time_ordered_replay:  # LNT's rows are single transitions: one buffer serves every arm
         return forward_rb, kind.replay(cfg, int(cfg.reset.buffer_size), cfg.reset.batch_size)
     size = -(-int(cfg.reset.buffer_size) // arms)  # the arms share the capacity of one run's buffer
@@ -111,5 +121,7 @@ def buffer_keys(cfg: DictConfig, forward: Agent, reset: Agent) -> tuple[list, li
     forward_keys = [(key,) if isinstance(key, str) else tuple(key) for key in forward.loss.in_keys]
     if setting(cfg, "forward.sampling") == "episode":
         forward_keys.append(("collector", "traj_ids"))  # the episode-first sampler's episodes
+        if arm_count(cfg) is not None:
+            forward_keys.append(("collector", "env_ids"))  # ArmReplay's routing
     reset_keys = reset_kind(cfg).buffer_keys(cfg, reset, arms=arm_count(cfg) is not None)
     return list(dict.fromkeys(forward_keys)), list(dict.fromkeys(reset_keys))

@@ -85,18 +85,11 @@ def validate(cfg: DictConfig) -> None:
     sampling = setting(cfg, "forward.sampling")
     if sampling not in ("episode", "transition"):
         problems.append(f"forward.sampling must be episode or transition, got {sampling!r}")
-    if arm_count(cfg) is not None and sampling == "episode":
-        problems.append("arms= interleaves the arms' steps in one forward buffer, where episode-first sampling "
-                        "cannot see whole episodes: add forward.sampling=transition")
     target_init = setting(cfg, "target_init")
     if target_init not in ("release", "copy"):
         problems.append(f"target_init must be release or copy, got {target_init!r}")
     if not isinstance(setting(cfg, "exploration.clip"), bool):
         problems.append(f"exploration.clip must be true or false, got {OmegaConf.select(cfg, 'exploration.clip')!r}")
-    batched = OmegaConf.select(cfg, "seeds", default=None) is not None or arm_count(cfg) is not None
-    if batched and restart == "never":
-        problems.append("seeds= and arms= restart the exploration noise at every episode (their batched collector "
-                        "does not keep each agent's noise across episodes yet): add exploration.restart=episode")
     if OmegaConf.select(cfg, "seeds", default=None) is not None and order == "release":
         problems.append("seeds= batches the updates of its runs as one joint step per agent: add update_order=joint")
     if int(cfg.heat_up) < 0:

@@ -70,6 +70,29 @@ def test_a_sample_splits_over_the_arms_by_their_rows_and_keeps_whole_windows():
     assert abs(int(from_first.sum()) - 2000) < 5 * 36.5
 
 
+def test_the_forward_buffer_of_arms_samples_each_arms_episodes_first(tmp_path):
+    """arms= with the release's episode-first forward sampling: the forward buffer is one buffer per arm
+    (episodes are runs of consecutive steps, which interleaved arms would cut into single rows), each
+    drawing an episode uniformly, then a step in it; the arms' shares follow the rows they hold."""
+    from buffers import make_buffers
+
+    forward_rb, _ = make_buffers(config(tmp_path, *COMMON, "arms=2", "forward.buffer_size=1001", "forward.batch_size=8000"))
+    assert isinstance(forward_rb, ArmReplay) and len(forward_rb.buffers) == 2
+    assert all(isinstance(b.sampler, EpisodeWindowSampler) and b.storage.max_size == 501 for b in forward_rb.buffers)
+    # arm 0: episodes of 10 and 2 steps (states 0..9 and 50..51), arm 1: one of 4 (100..103), interleaved
+    arm0 = torch.cat([episode(0, 0.0, 10, traj=1), episode(0, 50.0, 2, traj=3)])
+    for batch in interleaved(arm0, episode(1, 100.0, 4, traj=2)):
+        forward_rb.extend(batch)
+    torch.manual_seed(0)
+    obs = forward_rb.sample()["observation"].flatten()
+    first = obs < 100
+    # shares by rows held, 12 and 4: 6000 of 8000 from arm 0 (binomial sd sqrt(8000 * 3 / 16) = 38.7)
+    assert abs(int(first.sum()) - 6000) < 5 * 38.7
+    # within arm 0 each episode is drawn with probability 1/2 (uniform rows would give the short one 2/12):
+    # sd of the short episode's count sqrt(6000 / 4) = 38.7
+    assert abs(int((obs[first] >= 50).sum()) - 3000) < 5 * 38.7
+
+
 def test_one_arm_samples_exactly_as_its_buffer_alone():
     single = ReplayBuffer(storage=LazyTensorStorage(100), transform=NStepStateTransform(3),
                           sampler=EpisodeWindowSampler(3), batch_size=64)
@@ -120,9 +143,7 @@ def test_rows_without_their_arm_or_of_an_unknown_arm_are_refused():
         rb.extend(episode(2, 0.0, 3, traj=1))
 
 
-# what arms= supports: the noise restarted at every episode, the forward buffer sampled uniformly over steps
-ARMS_SETTINGS = ["exploration.restart=episode", "forward.sampling=transition"]
-COMMON = ["task=peg_insertion_insert", "algo=ours", "threads=1", *ARMS_SETTINGS]
+COMMON = ["task=peg_insertion_insert", "algo=ours", "threads=1"]  # the paper preset's settings, the release's included
 
 
 def without_speed(table):
@@ -141,7 +162,7 @@ def test_one_arm_is_the_run_on_one_env(tmp_path):
 
 @pytest.mark.parametrize("algo", ["ours", "lnt"])
 def test_arms_train_one_run_and_resume_exactly(tmp_path, algo):
-    common = ["task=peg_insertion_insert", f"algo={algo}", "threads=1", "arms=3", *ARMS_SETTINGS]
+    common = ["task=peg_insertion_insert", f"algo={algo}", "threads=1", "arms=3"]
     whole = train.train(config(tmp_path / "whole", *common, "total_steps=400"))
     train.train(config(tmp_path / "split", *common, "total_steps=200"))
     resumed = train.train(config(tmp_path / "split", *common, "total_steps=400", "resume=true"))
@@ -169,15 +190,6 @@ def test_arms_train_one_run_and_resume_exactly(tmp_path, algo):
 def test_bad_arm_configurations_fail_before_training(tmp_path, overrides, message):
     with pytest.raises(ConfigError, match=message):
         train.train(config(tmp_path, *COMMON, *overrides))
-
-
-@pytest.mark.parametrize("overrides, message", [
-    (["arms=2", "forward.sampling=transition"], "add exploration.restart=episode"),
-    (["arms=2", "exploration.restart=episode"], "add forward.sampling=transition"),
-])
-def test_arms_refuse_the_release_settings_they_cannot_follow_yet(tmp_path, overrides, message):
-    with pytest.raises(ConfigError, match=message):
-        train.train(config(tmp_path, "task=peg_insertion_insert", "algo=ours", "threads=1", *overrides))
 
 
 def test_a_checkpoint_resumes_only_with_its_number_of_arms(tmp_path):

@@ -292,3 +292,112 @@ def test_the_pooled_view_is_one_run_over_the_copies_and_ends_with_the_iteration_
     assert view.example_buffer is collector.example_buffers[0]
     with pytest.raises(ValueError, match="independent runs"):
         batched(start_joints, 10).pooled()
+
+
+class Drifting:
+    """A policy plus a noise process kept in the root tensordict, as torchrl's Ornstein-Uhlenbeck module
+    keeps its own (``_drift`` and ``_drift_steps``; zeros when absent, and where ``is_init`` holds):
+    ``x <- 0.7 x + 0.3 e`` with ``e`` from the copy's generator, the action moved by ``x / (1 + steps / 50)``.
+    Each copy's forward and reset policies share one generator but have their own process, so a copy
+    matches its single collector only if each phase's process continues where that phase left it."""
+
+    def __init__(self, policy, generators):
+        self.policy, self.generators = policy, generators
+
+    def __call__(self, td):
+        td = self.policy(td)
+        action = td.get("action")
+        acting = td.get("_acting", None)
+        batch = action.unsqueeze(0) if acting is None else action
+        prev = td.get("_drift", torch.zeros_like(action)).reshape(batch.shape).clone()
+        steps = td.get("_drift_steps", torch.zeros(*action.shape[:-1], 1, dtype=torch.long)).reshape(-1, 1).clone()
+        init = td.get("is_init", None)
+        if init is not None:
+            init = init.reshape(-1, 1)
+            prev, steps = torch.where(init, 0.0, prev), torch.where(init, 0, steps)
+        rows = [0] if acting is None else acting.nonzero().flatten().tolist()
+        moved = batch.clone()
+        for j, i in enumerate(rows):
+            prev[i] = 0.7 * prev[i] + 0.3 * torch.randn(batch.shape[-1], generator=self.generators[j if acting is None else i])
+            moved[i] = (batch[i] + prev[i] / (1 + steps[i] / 50)).clamp(-1, 1)
+            steps[i] += 1
+        td.set("action", moved.reshape(action.shape))
+        td.set("_drift", prev.reshape(action.shape))
+        td.set("_drift_steps", steps.reshape(*action.shape[:-1], 1))
+        return td
+
+
+def drifting_single(i, q0, steps, restart):
+    env = make_env(TASK, seed=SEEDS[i])
+    env.append_transform(trigger())
+    gens = generators([i])
+    return DualCollector(env, Drifting(forward_policy(FORWARD_GAIN[i]), gens),
+                         Drifting(reset_policy(RESET_GAIN[i], q0), gens), total_frames=steps,
+                         restart_exploration=restart, **HORIZONS)
+
+
+def drifting_batched(q0, steps, restart):
+    env = TransformedEnv(BatchedTaskEnv(TASK, seeds=SEEDS), trigger())
+    gens = generators(range(len(SEEDS)))
+    return BatchedDualCollector(env, Drifting(forward_policy(FORWARD_GAIN), gens),
+                                Drifting(reset_policy(RESET_GAIN, q0), gens), max_frames_per_env=steps,
+                                restart_exploration=restart, **HORIZONS)
+
+
+def test_each_copy_continues_its_own_noise_per_phase_as_a_single_collector_does(start_joints):
+    """restart_exploration=False: a copy's forward episode continues its forward noise, its reset episode its
+    reset noise, as DualCollector(restart_exploration=False) does alone; and a copy's state (its noise
+    included) continues in a single collector and the other way round."""
+    steps, cut = 500, 170
+    singles = []
+    for i in range(len(SEEDS)):
+        alone = drifting_single(i, start_joints, steps, restart=False)
+        singles.append(torch.cat([batch.select(*KEYS).clone() for batch in alone]))
+    restarted = torch.cat([b.select(*KEYS).clone() for b in drifting_single(0, start_joints, steps, restart=True)])
+    assert not torch.equal(restarted["action"], singles[0]["action"])  # the two settings act differently
+    collector = drifting_batched(start_joints, steps, restart=False)
+    traces = per_copy(list(collector))
+    for i, trace in enumerate(singles):
+        for key in KEYS:
+            assert torch.equal(traces[i].get(key), trace.get(key)), (i, key)
+    assert collector.env_metrics()[0]["reset_episodes"] > 3  # the processes were carried over several switches
+
+    # a single run saved at `cut` continues in the batch; the batch's copy then continues alone
+    collector = drifting_batched(start_joints, steps, restart=False)
+    heads = []
+    for i in range(len(SEEDS)):
+        alone = drifting_single(i, start_joints, steps, restart=False)
+        it = iter(alone)
+        heads.append(torch.cat([next(it).select(*KEYS).clone() for _ in range(cut)]))
+        saved = alone.state_dict()["exploration"]
+        assert saved["reset"] and saved["forward"]  # both phases have acted by then
+        collector.view(i).load_state_dict(alone.state_dict())
+        kept = collector.view(i).state_dict()["exploration"]  # read back before the batch moves
+        assert {p: sorted(v) for p, v in kept.items()} == {p: sorted(v) for p, v in saved.items()}
+        assert all(torch.equal(kept[p][k], saved[p][k]) for p in saved for k in saved[p])
+        collector.forward_policy.generators[i].set_state(alone.forward_policy.generators[0].get_state())
+    it = iter(collector)
+    middle = per_copy([next(it) for _ in range(80)])
+    for i in range(len(SEEDS)):
+        alone = drifting_single(i, start_joints, steps, restart=False)
+        alone.load_state_dict(collector.view(i).state_dict())
+        alone.forward_policy.generators[0].set_state(collector.forward_policy.generators[i].get_state())
+        tail = torch.cat([batch.select(*KEYS).clone() for batch in alone])
+        again = torch.cat([heads[i], middle[i], tail])
+        for key in KEYS:
+            assert torch.equal(again.get(key), singles[i].get(key)), (i, key)
+
+    # the batch's own state_dict resumes it exactly, the noise kept per copy and phase included
+    first = drifting_batched(start_joints, steps, restart=False)
+    it = iter(first)
+    head = [next(it) for _ in range(150)]
+    resumed = drifting_batched(start_joints, steps, restart=False)
+    resumed.load_state_dict(first.state_dict())
+    for i, gen in enumerate(first.forward_policy.generators):
+        resumed.forward_policy.generators[i].set_state(gen.get_state())
+    again = per_copy(head + list(resumed))
+    for i, trace in enumerate(singles):
+        assert torch.equal(again[i]["action"], trace["action"]), i
+    with pytest.raises(TypeError, match="restart_exploration must be a bool"):
+        BatchedDualCollector(BatchedTaskEnv(TASK, seeds=SEEDS), forward_policy(1.0), reset_policy(1.0, start_joints),
+                             max_forward_steps=5, restart_exploration="never")

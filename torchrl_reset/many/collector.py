@@ -13,8 +13,8 @@ from torchrl.envs import EnvBase
 from torchrl.envs.utils import ExplorationType, set_exploration_type, step_mdp
 
 from .._validation import check_int
-from ..collector import (COUNTERS, FORWARD, PHASE_NAMES, RESET, _state_owner, check_state_keys, set_up_loop,
-                        stopped_scores)
+from ..collector import (COUNTERS, FORWARD, PHASE_NAMES, RESET, _private_keys, _state_owner, check_state_keys,
+                        set_up_loop, stopped_scores)
 from ..example_buffer import InitialStateBuffer
 from .trigger import RowResetTriggerTransform
 
@@ -93,6 +93,14 @@ class BatchedDualCollector(BaseCollector):
     Keyword Args:
         max_forward_steps, max_reset_steps, min_reset_steps, reset_success_key, trigger_key, init_key,
         exploration_type, max_events, event_keys: as :class:`~torchrl_reset.DualCollector`.
+        restart_exploration (bool): as :class:`~torchrl_reset.DualCollector`'s, per copy: ``True`` (default):
+            ``init_key`` is True on each copy's first step of every episode. ``False`` (the authors'
+            release): it is never True, and the private root entries a policy's exploration writes
+            (Ornstein-Uhlenbeck's ``_ou_prev_noise`` and ``_ou_steps``) are kept per copy and per phase:
+            a copy's forward episode continues that copy's forward noise where its last forward episode
+            left it, its reset episode the reset noise; a phase that never acted in a copy starts from
+            zeros (a process at its start, as torchrl's OU module starts one). Saved by :meth:`state_dict`
+            and, per copy, in a single collector's format by :meth:`view`.
         total_frames (int): executed steps of all copies together after which iteration stops; -1 (default) never.
             The iteration that reaches it is completed (up to N - 1 steps past it), so that a run
             continued from there takes the same iterations as one that never stopped.
@@ -140,8 +148,12 @@ class BatchedDualCollector(BaseCollector):
         exploration_type: ExplorationType = ExplorationType.RANDOM,
         max_events: int = 100_000,
         event_keys: Sequence[NestedKey] = (),
+        restart_exploration: bool = True,
     ) -> None:
         super().__init__()
+        if not isinstance(restart_exploration, bool):
+            raise TypeError(f"restart_exploration must be a bool, got {restart_exploration!r}.")
+        self.restart_exploration = restart_exploration
         env = set_up_loop(self, create_env_fn, forward_policy, reset_policy, max_forward_steps=max_forward_steps,
                           max_reset_steps=max_reset_steps, min_reset_steps=min_reset_steps, total_frames=total_frames,
                           max_events=max_events, trigger_key=trigger_key, reset_success_key=reset_success_key,
@@ -173,6 +185,9 @@ class BatchedDualCollector(BaseCollector):
         self._traj_ids = np.zeros(n, dtype=np.int64)
         self._next_traj_id = 0
         self._restart = np.zeros(n, dtype=bool)
+        # restart_exploration=False: each phase's exploration entries per copy, where its last episode left them
+        self._exploration: dict[int, dict[str, torch.Tensor]] = {FORWARD: {}, RESET: {}}
+        self._explored = {FORWARD: np.zeros(n, dtype=bool), RESET: np.zeros(n, dtype=bool)}
         self._events: list[dict] = []
         self._pending: dict[int, tuple[dict, list]] = {}  # copies' saved states, restored at the first iteration
         self._td: TensorDictBase | None = None
@@ -238,6 +253,8 @@ class BatchedDualCollector(BaseCollector):
         else:  # a run per copy: each copy counts its episodes as its single collector does
             self._traj_ids[rows] += 1
         self._restart[rows] = True
+        if not self.restart_exploration:
+            self._continue_exploration(rows, phase, root)
         if phase == FORWARD:
             states = root[torch.as_tensor(rows)]
             if self.shared_examples:
@@ -245,6 +262,30 @@ class BatchedDualCollector(BaseCollector):
             else:
                 for j, i in enumerate(rows):
                     self.example_buffers[i].add(states[j])
+
+    def _continue_exploration(self, rows: np.ndarray, phase: int, root: TensorDictBase) -> None:
+        """Copies ``rows`` take up ``phase``'s exploration entries where that phase's last episode in each of
+        them left them (zeros, a process at its start, where the phase never acted in that copy)."""
+        chosen = np.zeros(self.num_envs, dtype=bool)
+        chosen[rows] = True
+        for key in _private_keys(root):
+            value = root.get(key)
+            saved = self._exploration[phase].get(key)
+            root.set(key, torch.where(_rows_mask(chosen, value),
+                                      torch.zeros_like(value) if saved is None else saved.to(value.device), value))
+
+    def _keep_exploration(self, td: TensorDictBase, forward: np.ndarray, reset: np.ndarray) -> None:
+        """Saves each acting copy's exploration entries (after its policy's call) as its phase's."""
+        for phase, rows in ((FORWARD, forward), (RESET, reset)):
+            if not rows.any():
+                continue
+            store = self._exploration[phase]
+            for key in _private_keys(td):
+                value = td.get(key)
+                before = store.get(key)
+                store[key] = torch.where(_rows_mask(rows, value), value,
+                                         torch.zeros_like(value) if before is None else before.to(value.device))
+            self._explored[phase] |= rows
 
     def _clear_flags(self, root: TensorDictBase) -> TensorDictBase:
         for key in {*self.env.done_keys, "truncated"}:
@@ -295,6 +336,8 @@ class BatchedDualCollector(BaseCollector):
                     continue
                 td.set(key, value if before is None or len(outputs) == 1 and rows.all()
                        else torch.where(_rows_mask(rows, value), value, before))
+        if not self.restart_exploration:
+            self._keep_exploration(td, forward, reset)
         return td
 
     def _score_next(self, root: TensorDictBase, rows: np.ndarray) -> tuple[np.ndarray, TensorDictBase]:
@@ -317,7 +360,7 @@ class BatchedDualCollector(BaseCollector):
         td, n = self._td, self.num_envs
         active = np.ones(n, dtype=bool) if self.max_frames_per_env is None else self.frames_per_env < self.max_frames_per_env
         forward, reset = active & (self._phase == FORWARD), active & (self._phase == RESET)
-        td.set(self.init_key, torch.from_numpy(self._phase_steps == 0).reshape(n, 1).to(td.device))
+        td.set(self.init_key, torch.from_numpy((self._phase_steps == 0) & self.restart_exploration).reshape(n, 1).to(td.device))
         for trigger in self.triggers:
             trigger.set_enabled(torch.from_numpy(forward), restart=torch.from_numpy(self._restart))
         self._restart[:] = False
@@ -451,6 +494,8 @@ class BatchedDualCollector(BaseCollector):
             env_state=None if self._state_owner is None or self._td is None else self._state_owner.get_simulator_state(),
             example_buffers=[b.state_dict() for b in self.example_buffers],
             trigger_state=[(t.smoothed, t.enabled_rows) for t in self.triggers],
+            exploration={PHASE_NAMES[p]: {k: v.clone() for k, v in store.items()} for p, store in self._exploration.items()},
+            explored={PHASE_NAMES[p]: rows.copy() for p, rows in self._explored.items()},
             events=[{**e, "state": e["state"].to_dict()} for e in self._events],
             pending=dict(self._pending),
             rng_state=torch.get_rng_state(),
@@ -474,6 +519,10 @@ class BatchedDualCollector(BaseCollector):
         for trigger, (smoothed, rows) in zip(self.triggers, state_dict.get("trigger_state", [])):
             trigger.set_enabled(True if rows is None else rows)
             trigger.smoothed = smoothed
+        saved, explored = state_dict.get("exploration") or {}, state_dict.get("explored") or {}
+        self._exploration = {p: dict(saved.get(PHASE_NAMES[p], {})) for p in (FORWARD, RESET)}
+        self._explored = {p: np.array(explored.get(PHASE_NAMES[p], np.zeros(self.num_envs, dtype=bool)), dtype=bool)
+                          for p in (FORWARD, RESET)}
         self._events = [{**e, "state": TensorDict.from_dict(e["state"])} for e in state_dict.get("events", [])]
         torch.set_rng_state(state_dict["rng_state"])
         self._pending = dict(state_dict.get("pending", {}))
@@ -582,6 +631,8 @@ class CopyView(_RunView):
             counters=self.counters, phase=int(c._phase[i]), phase_steps=int(c._phase_steps[i]),
             traj_id=int(c._traj_ids[i]), frames=self.frames, td=td, env_state=env_state,
             example_buffer=self.example_buffer.state_dict(), trigger_smoothing=smoothing,
+            exploration={PHASE_NAMES[p]: {k: v[i].clone() for k, v in store.items()} if c._explored[p][i] else {}
+                         for p, store in c._exploration.items()},
             events=[{**{k: v for k, v in e.items() if k != "env"}, "state": e["state"].to_dict()}
                     for e in self._own_events()],
             rng_state=torch.get_rng_state(),
@@ -603,6 +654,16 @@ class CopyView(_RunView):
         c._traj_ids[i] = int(state_dict["traj_id"])
         c._frames = int(c.frames_per_env.sum())
         self.example_buffer.load_state_dict(state_dict["example_buffer"])
+        saved = state_dict.get("exploration") or {}
+        for p in (FORWARD, RESET):  # the copy's row of each phase's exploration entries (zeros: none saved)
+            entries = saved.get(PHASE_NAMES[p]) or {}
+            store = c._exploration[p]
+            for key, value in entries.items():
+                if key not in store:
+                    store[key] = torch.zeros((c.num_envs, *value.shape), dtype=value.dtype, device=value.device)
+            for key, value in store.items():
+                value[i] = entries[key].to(value.device) if key in entries else 0
+            c._explored[p][i] = bool(entries)
         c._events = [e for e in c._events if e["env"] != i] + [
             {**e, "env": i, "state": TensorDict.from_dict(e["state"], batch_size=[])} for e in state_dict.get("events", [])]
         if state_dict.get("rng_state") is not None:
