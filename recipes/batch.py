@@ -208,6 +208,7 @@ class BatchedUpdates:
         self.reset = reset_kind(cfg).batched_update([r.reset.loss for r in runs], [r.reset.optimizer for r in runs],
                                                     cfg, reset_tau(cfg))
         self.precision = runs[0].matmul_precision
+        self.release_order = runs[0].learner.release_order  # update_order: release (a batch's runs agree on it)
         self.seconds = 0.0  # spent in update calls (read by the loop's timing)
         for s, run in enumerate(runs):  # a checkpoint holds the run's own optimizer state, as a run alone's
             run.state.before_save = (lambda s=s: self.export(s))
@@ -216,8 +217,17 @@ class BatchedUpdates:
         self.forward.export(run)
         self.reset.export(run)
 
-    def apply(self, phase: str, requests: dict[int, object]) -> None:
-        """One update of agent ``phase`` for the runs in ``requests`` (run index -> its sample)."""
+    def request(self, learner, phase: str) -> tuple:
+        """A run's sample for its update of agent ``phase``, and with ``update_order: release`` the rows of it
+        the actor's step uses (drawn with replacement), in the order a run alone draws them: call it in the
+        run's own random stream."""
+        sample = learner.sample(phase)  # replay rows (ours: + success examples; LNT: + reward)
+        if not self.release_order:
+            return sample, None
+        return sample, torch.randint(sample.shape[0], (sample.shape[0],), device=sample.device)
+
+    def apply(self, phase: str, requests: dict[int, tuple]) -> None:
+        """One update of agent ``phase`` for the runs in ``requests`` (run index -> :meth:`request`'s pair)."""
         if not requests:
             return
         update = self.forward if phase == "forward" else self.reset
@@ -225,7 +235,8 @@ class BatchedUpdates:
         started = time.perf_counter()
         with matmul_products(self.precision):
             try:
-                losses = update.update([requests[s] for s in runs], runs)
+                losses = update.update([requests[s][0] for s in runs], runs,
+                                       actor_rows=[requests[s][1] for s in runs] if self.release_order else None)
             except FloatingPointError as err:
                 raise NonFiniteLoss(f"{phase} agent, {err}") from err
             if torch.cuda.is_available() and torch.cuda.is_initialized():
@@ -446,7 +457,7 @@ def _train_batch(configs: list[DictConfig]) -> list[dict]:
                         learner = runs[s].learner
                         learner.store(batch, phase)
                         if learner.updating(phase):
-                            requests[phase][s] = learner.sample(phase)  # its sample, from its own stream
+                            requests[phase][s] = updates.request(learner, phase)  # from its own stream
                 for phase in ("forward", "reset"):  # lines 16 / 23 of every run, one call per agent type
                     updates.apply(phase, requests[phase])
                 for s, batch, phase in stepped:

@@ -90,8 +90,6 @@ def validate(cfg: DictConfig) -> None:
         problems.append(f"target_init must be release or copy, got {target_init!r}")
     if not isinstance(setting(cfg, "exploration.clip"), bool):
         problems.append(f"exploration.clip must be true or false, got {OmegaConf.select(cfg, 'exploration.clip')!r}")
-    if OmegaConf.select(cfg, "seeds", default=None) is not None and order == "release":
-        problems.append("seeds= batches the updates of its runs as one joint step per agent: add update_order=joint")
     if int(cfg.heat_up) < 0:
         problems.append(f"heat_up must be >= 0, got {cfg.heat_up}")
     arms = arm_count(cfg)

@@ -34,10 +34,7 @@ TINY = [
     "forward.buffer_size=2000", "reset.buffer_size=2000", "eval_every=100", "log_every=50", "checkpoint_every=100",
     "progress_bar=false", "speed.compile=[]", "speed.fused_adam=false", "task=peg_insertion_remove",
 ]
-# what a batch cannot follow yet: the release's update order (one joint step per agent instead); the noise
-# goes on from episode to episode as in the release (the preset's exploration.restart=never)
-BATCH_SETTINGS = ["update_order=joint"]
-TINY = [*TINY, *BATCH_SETTINGS]
+# a batch runs the paper preset as it is: the release's update order and noise that goes on across episodes
 COUNTERS = ["frames", "forward_steps", "reset_steps", "forward_episodes", "reset_episodes", "manual_resets",
             "triggered_resets", "requested_resets", "successful_resets", "forward_share", "reset_success_rate"]
 LOSSES = ["loss_forward_actor", "loss_forward_critic", "loss_reset_actor", "loss_reset_critic", "eval_return"]
@@ -183,14 +180,6 @@ def test_bad_batches_fail_before_training(tmp_path, overrides, message):
         seeds = batch.batch_seeds(cfg)
         batch.run_configs(cfg, seeds)
     assert not any(tmp_path.rglob("*.csv"))
-
-
-def test_batches_refuse_the_release_update_order_they_cannot_follow_yet():
-    with initialize_config_dir(config_dir=str(RECIPES / "conf"), version_base="1.3"):
-        cfg = compose(config_name="config", overrides=[*(t for t in TINY if t not in BATCH_SETTINGS), "seeds=2"])
-    with pytest.raises(ConfigError, match="add update_order=joint") as refused:
-        validate(cfg)
-    assert "exploration.restart" not in str(refused.value)  # the noise that goes on is followed
 
 
 @pytest.mark.parametrize("overrides,message", [

@@ -294,15 +294,12 @@ def test_the_pooled_view_is_one_run_over_the_copies_and_ends_with_the_iteration_
         batched(start_joints, 10).pooled()
 
 
-class Drifting:
+class Drifting(Noisy):
     """A policy plus a noise process kept in the root tensordict, as torchrl's Ornstein-Uhlenbeck module
     keeps its own (``_drift`` and ``_drift_steps``; zeros when absent, and where ``is_init`` holds):
     ``x <- 0.7 x + 0.3 e`` with ``e`` from the copy's generator, the action moved by ``x / (1 + steps / 50)``.
     Each copy's forward and reset policies share one generator but have their own process, so a copy
     matches its single collector only if each phase's process continues where that phase left it."""
-
-    def __init__(self, policy, generators):
-        self.policy, self.generators = policy, generators
 
     def __call__(self, td):
         td = self.policy(td)

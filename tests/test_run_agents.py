@@ -86,8 +86,21 @@ def reference_step(agent, td, names) -> dict:
 CASES = [("ours", "reset"), ("ours", "forward"), ("lnt", "reset"), ("lnt_sparse", "reset"), ("lnt_bounded", "reset")]
 
 
+def release_reference(agent, td, names, seed: int) -> dict:
+    """The recipe's own update of one run in the release's order (critic step, then actor step on rows
+    drawn with replacement from torch's global generator, then targets), the generator seeded first."""
+    import train
+
+    torch.manual_seed(seed)
+    return train.update(agent, td, agent.loss, release_order=True)
+
+
+@pytest.mark.parametrize("order", ["joint", "release"])
 @pytest.mark.parametrize("algo,role", CASES)
-def test_a_batched_update_is_each_runs_own_update_and_leaves_idle_runs_untouched(algo, role):
+def test_a_batched_update_is_each_runs_own_update_and_leaves_idle_runs_untouched(algo, role, order):
+    """``order``: one step on both losses, or the release's critic step, then actor step over rows drawn
+    with replacement (each run's rows drawn as the recipe's update draws them alone), each run's Adam
+    counting one step per update in both."""
     cfg, batched_agents = agents(algo, role)
     _, alone = agents(algo, role)  # the same seeds: equal starting networks
     if role == "forward" or algo != "ours":
@@ -105,9 +118,17 @@ def test_a_batched_update_is_each_runs_own_update_and_leaves_idle_runs_untouched
         if role == "reset" and algo != "ours":
             tds = [lnt_batch(td, cfg.algo, int(cfg.algo.num_members)) for td in tds]
         before = [{k: v.clone() for k, v in a.loss.state_dict().items()} for a in batched_agents]
-        out = update.update([tds[s] for s in runs], runs)
+        seeds = {s: 1000 + 10 * step + s for s in runs}
+        rows = {}
+        for s in runs:  # the rows the recipe's update draws for run s after its critic step
+            torch.manual_seed(seeds[s])
+            rows[s] = torch.randint(B, (B,))
+        assert order == "joint" or not runs or any(len(set(r.tolist())) < B for r in rows.values())  # with replacement
+        out = update.update([tds[s] for s in runs], runs,
+                            actor_rows=[rows[s] for s in runs] if order == "release" else None)
         for j, s in enumerate(runs):
-            expected = reference_step(alone[s], tds[s], names)
+            expected = (reference_step(alone[s], tds[s], names) if order == "joint"
+                        else release_reference(alone[s], tds[s], names, seeds[s]))
             for n in names:
                 assert float(out[n][j]) == pytest.approx(expected[n], rel=1e-5, abs=1e-6), (step, s, n)
         for s in range(S):

@@ -47,6 +47,46 @@ def test_each_run_follows_torch_adam_alone_and_runs_that_did_not_act_are_untouch
     assert batched.steps.tolist() == [int(optimizers[s].state[alone[s][0]]["step"]) for s in range(S)]
 
 
+def test_a_second_step_of_the_same_count_is_torch_adam_stepping_another_set_of_parameters():
+    """A critic step, then an actor step (the release's update order): torch's Adam skips the parameters
+    without a gradient and counts per parameter, so each parameter steps once per update at the same
+    count; ``same_step=True`` does the same with one count per run."""
+    gen = torch.Generator().manual_seed(1)
+    critic = torch.nn.Parameter(torch.randn(S, 4, generator=gen))
+    actor = torch.nn.Parameter(torch.randn(S, 2, generator=gen))
+    batched = RunMaskedAdam([{"params": [actor], "lr": 1e-2}, {"params": [critic], "lr": 3e-3}], runs=S)
+    alone = [(torch.nn.Parameter(actor[s].detach().clone()), torch.nn.Parameter(critic[s].detach().clone()))
+             for s in range(S)]
+    optimizers = [torch.optim.Adam([{"params": [a], "lr": 1e-2}, {"params": [c], "lr": 3e-3}], foreach=False)
+                  for a, c in alone]
+    with pytest.raises(ValueError, match="has taken none"):
+        batched.step(torch.ones(S, dtype=torch.bool), same_step=True)
+    schedule = masks(10, gen)
+    for mask in schedule:
+        grad_c, grad_a = torch.randn(S, 4, generator=gen), torch.randn(S, 2, generator=gen)
+        batched.zero_grad()
+        critic.grad = grad_c.clone()
+        batched.step(mask)  # the actor has no gradient: untouched
+        batched.zero_grad()
+        actor.grad = grad_a.clone()
+        batched.step(mask, same_step=True)
+        for s in range(S):
+            if mask[s]:
+                (a, c), opt = alone[s], optimizers[s]
+                opt.zero_grad()
+                c.grad = grad_c[s].clone()
+                opt.step()
+                opt.zero_grad()
+                a.grad = grad_a[s].clone()
+                opt.step()
+        for s in range(S):
+            assert torch.equal(actor[s], alone[s][0]) and torch.equal(critic[s], alone[s][1]), s  # bit for bit
+    counts = torch.stack(schedule).sum(0).tolist()
+    assert batched.steps.tolist() == counts
+    assert [int(optimizers[s].state[alone[s][0]]["step"]) for s in range(S)] == counts  # once per update each
+    assert [int(optimizers[s].state[alone[s][1]]["step"]) for s in range(S)] == counts
+
+
 def test_state_dict_resumes_exactly():
     gen = torch.Generator().manual_seed(1)
     p = torch.nn.Parameter(torch.randn(S, 6, generator=gen))

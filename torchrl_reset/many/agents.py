@@ -350,27 +350,62 @@ class _RunUpdate:
         self.targets = RunMaskedSoftUpdate(sources, targets, self.runs, tau)
 
     def losses(self, samples: Sequence[TensorDictBase], runs: torch.Tensor) -> dict[str, torch.Tensor]:
+        """Both losses per run, computed together (the joint step)."""
         raise NotImplementedError
 
-    def update(self, samples: Sequence[TensorDictBase], runs: Sequence[int]) -> dict[str, torch.Tensor]:
-        """One gradient step and one target update for the runs ``runs`` (sample ``samples[j]`` is run
-        ``runs[j]``'s); returns each loss per run, ``[len(runs)]``. Raises ``FloatingPointError``
-        naming the runs whose loss is not finite, before any parameter changed."""
-        index = torch.as_tensor(list(runs), dtype=torch.long)
-        if index.numel() == 0:
-            return {}
-        everyone = index.numel() == self.runs and bool((index == torch.arange(self.runs)).all())
-        losses = self.losses(samples, None if everyone else index)
-        total = sum(losses[n] for n in self.loss_names)
+    def critic_losses(self, samples: Sequence[TensorDictBase], runs: torch.Tensor | None) -> torch.Tensor:
+        """The critic's loss per run (``loss_names[1]``), alone."""
+        raise NotImplementedError
+
+    def actor_losses(self, samples: Sequence[TensorDictBase], runs: torch.Tensor | None) -> torch.Tensor:
+        """The actor's loss per run, the critic held fixed, alone."""
+        raise NotImplementedError
+
+    @staticmethod
+    def _check_finite(index: torch.Tensor, losses: dict[str, torch.Tensor]) -> torch.Tensor:
+        total = sum(losses.values())
         finite = torch.isfinite(total.detach())
         if not bool(finite.all()):
             bad = index[~finite].tolist()
             raise FloatingPointError(f"runs {bad}: " + ", ".join(
-                f"{n}={losses[n].detach()[~finite].tolist()}" for n in self.loss_names))
+                f"{n}={v.detach()[~finite].tolist()}" for n, v in losses.items()))
+        return total
+
+    def _step(self, total: torch.Tensor, mask: torch.Tensor, *, same_step: bool = False) -> None:
         self.optimizer.zero_grad()
         total.sum().backward()  # the runs' parameters are disjoint: each gets its own loss's gradient
-        mask = _mask(index, self.runs)
-        self.optimizer.step(mask)
+        self.optimizer.step(mask, same_step=same_step)
+
+    def update(self, samples: Sequence[TensorDictBase], runs: Sequence[int], *,
+               actor_rows: Sequence[torch.Tensor] | None = None) -> dict[str, torch.Tensor]:
+        """One update and one target update for the runs ``runs`` (sample ``samples[j]`` is run ``runs[j]``'s);
+        returns each loss per run, ``[len(runs)]``. Raises ``FloatingPointError`` naming the runs whose
+        loss is not finite, before any parameter that loss moves changed.
+
+        Without ``actor_rows``: one step on the sum of both losses computed together. With ``actor_rows``
+        (one index tensor per run, the rows of its sample drawn with replacement, as the run alone draws
+        them): the authors' release's order (``update_order: release``), as ``recipes/train.py``'s
+        ``update`` runs it for one run: a step on the critic's loss, then a step on the actor's loss over
+        ``samples[j][actor_rows[j]]`` computed with the updated critic, then the target update. The
+        two steps move disjoint parameters, each once: a run's Adam step count advances once, as torch's
+        per-parameter counts do."""
+        index = torch.as_tensor(list(runs), dtype=torch.long)
+        if index.numel() == 0:
+            return {}
+        everyone = index.numel() == self.runs and bool((index == torch.arange(self.runs)).all())
+        selected, mask = None if everyone else index, _mask(index, self.runs)
+        actor_name, critic_name = self.loss_names
+        if actor_rows is None:
+            losses = self.losses(samples, selected)
+            self._step(self._check_finite(index, losses), mask)
+        else:
+            if len(actor_rows) != len(samples):
+                raise ValueError(f"actor_rows gives {len(actor_rows)} index tensors for {len(samples)} samples.")
+            critic = self.critic_losses(samples, selected)
+            self._step(self._check_finite(index, {critic_name: critic}), mask)
+            actor = self.actor_losses([s[rows] for s, rows in zip(samples, actor_rows)], selected)
+            self._step(self._check_finite(index, {actor_name: actor}), mask, same_step=True)
+            losses = {actor_name: actor, critic_name: critic}
         self.targets.step(mask)
         return {n: v.detach() for n, v in losses.items()}
 
@@ -410,6 +445,10 @@ class RunDDPGUpdate(_RunUpdate):
         super().__init__(policies, ensembles, optimizers, tau)
 
     def losses(self, samples: Sequence[TensorDictBase], runs: torch.Tensor | None) -> dict[str, torch.Tensor]:
+        loss_value = self.critic_losses(samples, runs)
+        return {"loss_actor": self.actor_losses(samples, runs), "loss_value": loss_value}
+
+    def critic_losses(self, samples: Sequence[TensorDictBase], runs: torch.Tensor | None) -> torch.Tensor:
         obs = _stack(samples, self.obs_key)
         action = _stack(samples, "action")
         next_obs = _stack(samples, ("next", self.obs_key))
@@ -421,10 +460,12 @@ class RunDDPGUpdate(_RunUpdate):
             target = reward + self.gamma * (~terminated).int() * next_q
             if self.bounds is not None:
                 target = target.clamp(*self.bounds)
-        loss_value = (q - target).pow(2).flatten(1).mean(1)
+        return (q - target).pow(2).flatten(1).mean(1)
+
+    def actor_losses(self, samples: Sequence[TensorDictBase], runs: torch.Tensor | None) -> torch.Tensor:
+        obs = _stack(samples, self.obs_key)
         actor_q = self.ensembles.logits(obs, self.policies(obs, runs), runs, detach=True)
-        loss_actor = -actor_q.flatten(1).mean(1)
-        return {"loss_actor": loss_actor, "loss_value": loss_value}
+        return -actor_q.flatten(1).mean(1)
 
 
 class RunRCEUpdate(_RunUpdate):
@@ -493,3 +534,22 @@ class RunRCEUpdate(_RunUpdate):
         example_logits, replay_logits = logits[:, :batch], logits[:, batch:]
         return {"loss_actor": actor_loss(actor_logits),
                 "loss_classifier": classifier_loss(example_logits, replay_logits, label, weight, gamma)}
+
+    def critic_losses(self, samples: Sequence[TensorDictBase], runs: torch.Tensor | None) -> torch.Tensor:
+        """Eq. 2 per run alone (the release's order: before the actor's step)."""
+        batch = samples[0].shape[0]
+        obs, action = _stack(samples, self.obs_key), _stack(samples, "action")
+        examples = _stack(samples, (*_key(self.example_key), self.obs_key))
+        with torch.no_grad():
+            targets = self._targets(samples)
+            acting = self.policies(torch.cat([targets, examples], 1), runs)
+            label, weight = self._labels_from(samples, targets, acting[:, :targets.shape[1]], runs)
+            example_action = acting[:, targets.shape[1]:]
+        logits = self.ensembles.logits(torch.cat([examples, obs], 1),
+                                       torch.cat([example_action, action.to(example_action.dtype)], 1), runs)
+        return classifier_loss(logits[:, :batch], logits[:, batch:], label, weight, self.gamma)
+
+    def actor_losses(self, samples: Sequence[TensorDictBase], runs: torch.Tensor | None) -> torch.Tensor:
+        """Eq. 3 per run alone, the classifiers held fixed."""
+        obs = _stack(samples, self.obs_key)
+        return actor_loss(self.ensembles.logits(obs, self.policies(obs, runs), runs, detach=True))

@@ -93,8 +93,14 @@ class RunMaskedAdam:
                         p.grad.zero_()
 
     @torch.no_grad()
-    def step(self, mask: torch.Tensor) -> None:
-        """One Adam step for the runs where ``mask`` holds; the other runs are not touched.
+    def step(self, mask: torch.Tensor, *, same_step: bool = False) -> None:
+        """One Adam step for the runs where ``mask`` holds; the other runs are not touched. Parameters
+        without a gradient are skipped, as torch's Adam skips them.
+
+        ``same_step=True``: a further step of the same count, on other parameters (those with a gradient
+        now): the runs' counts are not advanced again, and the bias corrections use the current counts.
+        Two losses that step disjoint parameters one after the other (a critic, then an actor) so count
+        once per run, as torch's per-parameter step counts do.
 
         With every run in the mask the update runs in place on the whole stacks; otherwise on the
         selected runs' rows only (gathered, updated, written back), so its cost follows the runs that
@@ -102,7 +108,9 @@ class RunMaskedAdam:
         mask = _check_mask(mask, self.runs).cpu()
         if not bool(mask.any()):
             return
-        steps = self.steps + mask.long()
+        if same_step and bool((self.steps[mask] == 0).any()):
+            raise ValueError("same_step=True continues a step already taken; a run in the mask has taken none.")
+        steps = self.steps if same_step else self.steps + mask.long()
         everyone = bool(mask.all())
         index = mask.nonzero().squeeze(1)
         counts = steps[index].tolist()
