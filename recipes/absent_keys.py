@@ -19,6 +19,7 @@ ABSENT_KEYS = {
     "update_order": "joint",               # one step on both losses (the release: critic, then actor)
     "forward.sampling": "transition",      # the forward buffer uniform over steps (the release: episode first)
     "target_init": "copy",                 # every target a copy of its network (the release's draws: release)
+    "algo.success_terminal": False,        # LNT's TD targets bootstrap through a successful reset (as the preset)
 }
 
 

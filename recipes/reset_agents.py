@@ -16,7 +16,7 @@ from omegaconf import DictConfig, OmegaConf
 from torch import nn
 from torchrl.data import LazyTensorStorage, ReplayBuffer
 
-from absent_keys import setting
+from absent_keys import ABSENT_KEYS, setting
 from torchrl_reset import EpisodeWindowSampler, NStepStateTransform, ResetTriggerTransform, success_probability
 from torchrl_reset.ensemble import PRIOR_BIAS_DRAWS
 from torchrl_reset.many import RunDDPGUpdate, RunRCEUpdate
@@ -156,6 +156,9 @@ class RCEKind(ResetAgentKind):
         if OmegaConf.select(cfg, "algo.reward_bounds", default=None) is not None:
             problems.append("algo.reward_bounds clips LNT's TD targets; ours has no reward (its labels: "
                             "algo.clip_target_values)")
+        if OmegaConf.select(cfg, "algo.success_terminal", default=False):
+            problems.append("algo.success_terminal ends LNT's TD targets at a successful reset; ours has no TD "
+                            "targets on a reward")
         sampling = OmegaConf.select(cfg, "algo.nstep_sampling", default="episode")
         if sampling not in ("episode", "transition"):
             problems.append(f"algo.nstep_sampling must be episode or transition, got {sampling!r}")
@@ -217,6 +220,8 @@ class LNTKind(ResetAgentKind):
                                    or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in bounds)
                                    or not bounds[0] < bounds[1]):
             return [f"algo.reward_bounds must be [low, high] with low < high, got {bounds!r}"]
+        if not isinstance(setting(cfg, "algo.success_terminal"), bool):
+            return [f"algo.success_terminal must be true or false, got {OmegaConf.select(cfg, 'algo.success_terminal')!r}"]
         return []
 
 
@@ -232,11 +237,17 @@ def reset_kind(cfg: DictConfig) -> ResetAgentKind:
 
 
 def lnt_batch(sample, algo: DictConfig, num_members: int):
-    """The LNT reset agent's batch: its reward (shaped or sparse) and done flags, one column per ensemble member."""
+    """The LNT reset agent's batch: its reward (shaped or sparse) and done flags, one column per ensemble member.
+    With ``algo.success_terminal`` (not the paper's) a step into the success check is terminal for the TD
+    targets: ``Q = r`` there, no bootstrapping past it."""
     nxt = sample.get("next")
     reward = nxt.get("reset_reward") if algo.reset_reward == "shaped" else nxt.get("reset_success").float()
     shape = (*reward.shape[:-1], num_members)
     nxt.set("lnt_reward", reward.expand(shape))
+    if OmegaConf.select(algo, "success_terminal", default=ABSENT_KEYS["algo.success_terminal"]):
+        success = nxt.get("reset_success").reshape(nxt.get("terminated").shape)
+        for key in ("done", "terminated"):
+            nxt.set(key, nxt.get(key) | success)
     for key in ("done", "terminated"):
         nxt.set(key, nxt.get(key).expand(shape))
     return sample

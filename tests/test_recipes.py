@@ -269,7 +269,8 @@ def test_lnt_reset_loss_gives_each_member_its_own_td_target(tmp_path):
     k, b = cfg.algo.num_members, 6
     td = TensorDict({
         "observation": torch.randn(b, 14), "action": torch.rand(b, 7) * 4 - 2,
-        "next": {"observation": torch.randn(b, 14), "reset_reward": torch.rand(b, 1), "reset_success": torch.rand(b, 1) > 0.5,
+        "next": {"observation": torch.randn(b, 14), "reset_reward": torch.rand(b, 1),
+                 "reset_success": torch.tensor([True, False, True, False, False, True]).reshape(b, 1),
                  "done": torch.zeros(b, 1, dtype=torch.bool), "terminated": torch.zeros(b, 1, dtype=torch.bool)},
     }, [b])
     for reward_kind, reward in (("shaped", td["next", "reset_reward"]), ("sparse", td["next", "reset_success"].float())):
@@ -281,6 +282,12 @@ def test_lnt_reset_loss_gives_each_member_its_own_td_target(tmp_path):
         assert q.shape == (b, k)
         expected = ((q - (reward + cfg.gamma * q_next)) ** 2).mean()  # member i against r + gamma Q_i(s', pi(s'))
         assert float(loss.detach()) == pytest.approx(float(expected), rel=1e-5)
+    # algo.success_terminal (not the paper's): no bootstrapping past a step into the success check, Q = r there
+    cfg.algo.success_terminal = True
+    loss = agent.loss(lnt_batch(td.clone(), cfg.algo, k))["loss_value"]
+    ended = td["next", "reset_success"]  # [b, 1]: the target is r alone on these rows
+    expected = ((q - (reward + cfg.gamma * (~ended).float() * q_next)) ** 2).mean()
+    assert float(loss.detach()) == pytest.approx(float(expected), rel=1e-5)
 
 
 def test_update_budget_skips_updates_that_would_not_fit_in_the_control_period():
