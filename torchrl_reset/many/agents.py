@@ -517,36 +517,33 @@ class RunRCEUpdate(_RunUpdate):
             targets = self._targets(samples)
             return self._labels_from(samples, targets, self.policies(targets, runs), runs)
 
-    def losses(self, samples: Sequence[TensorDictBase], runs: torch.Tensor | None) -> dict[str, torch.Tensor]:
-        gamma, batch = self.gamma, samples[0].shape[0]
+    def _classifier_inputs(self, samples: Sequence[TensorDictBase], runs: torch.Tensor | None):
+        """Eq. 2's pairs, the examples' then the replay rows' (states and actions, ``[S', 2B, ...]``), with
+        the shared label and weight; one policy pass, without gradient, for s_{t+1}, s_{t+n} and s*."""
         obs = _stack(samples, self.obs_key)
         action = _stack(samples, "action")
-        examples = _stack(samples, (*_key(self.example_key), self.obs_key))
-        with torch.no_grad():  # one policy pass for s_{t+1}, s_{t+n} and s*
-            targets = self._targets(samples)
-            acting = self.policies(torch.cat([targets, examples], 1), runs)
-            label, weight = self._labels_from(samples, targets, acting[:, :targets.shape[1]], runs)
-            example_action = acting[:, targets.shape[1]:]
-        # the examples' and replay rows' classifier pairs and the actor's pairs share the state part
-        logits, actor_logits = self.ensembles.paired(
-            torch.cat([examples, obs], 1), torch.cat([example_action, action.to(example_action.dtype)], 1),
-            self.policies(obs, runs), batch, runs)
-        example_logits, replay_logits = logits[:, :batch], logits[:, batch:]
-        return {"loss_actor": actor_loss(actor_logits),
-                "loss_classifier": classifier_loss(example_logits, replay_logits, label, weight, gamma)}
-
-    def critic_losses(self, samples: Sequence[TensorDictBase], runs: torch.Tensor | None) -> torch.Tensor:
-        """Eq. 2 per run alone (the release's order: before the actor's step)."""
-        batch = samples[0].shape[0]
-        obs, action = _stack(samples, self.obs_key), _stack(samples, "action")
         examples = _stack(samples, (*_key(self.example_key), self.obs_key))
         with torch.no_grad():
             targets = self._targets(samples)
             acting = self.policies(torch.cat([targets, examples], 1), runs)
             label, weight = self._labels_from(samples, targets, acting[:, :targets.shape[1]], runs)
             example_action = acting[:, targets.shape[1]:]
-        logits = self.ensembles.logits(torch.cat([examples, obs], 1),
-                                       torch.cat([example_action, action.to(example_action.dtype)], 1), runs)
+        states = torch.cat([examples, obs], 1)
+        return obs, states, torch.cat([example_action, action.to(example_action.dtype)], 1), label, weight
+
+    def losses(self, samples: Sequence[TensorDictBase], runs: torch.Tensor | None) -> dict[str, torch.Tensor]:
+        batch = samples[0].shape[0]
+        obs, states, actions, label, weight = self._classifier_inputs(samples, runs)
+        # the examples' and replay rows' classifier pairs and the actor's pairs share the state part
+        logits, actor_logits = self.ensembles.paired(states, actions, self.policies(obs, runs), batch, runs)
+        return {"loss_actor": actor_loss(actor_logits),
+                "loss_classifier": classifier_loss(logits[:, :batch], logits[:, batch:], label, weight, self.gamma)}
+
+    def critic_losses(self, samples: Sequence[TensorDictBase], runs: torch.Tensor | None) -> torch.Tensor:
+        """Eq. 2 per run alone (the release's order: before the actor's step)."""
+        batch = samples[0].shape[0]
+        _, states, actions, label, weight = self._classifier_inputs(samples, runs)
+        logits = self.ensembles.logits(states, actions, runs)
         return classifier_loss(logits[:, :batch], logits[:, batch:], label, weight, self.gamma)
 
     def actor_losses(self, samples: Sequence[TensorDictBase], runs: torch.Tensor | None) -> torch.Tensor:
