@@ -23,7 +23,7 @@ from omegaconf import OmegaConf
 
 __all__ = ["RunFolderBusy", "run_folder_lock", "code_version", "processor_name", "Checkpoints", "CheckpointDamaged",
            "checkpoint_problems", "no_intact_checkpoint", "TrainingState", "RunInterrupted", "stop_on_signals",
-           "reset_outcomes_by_quarter", "CsvTable"]
+           "reset_outcomes_by_quarter", "CsvTable", "dump_buffer"]
 
 log = logging.getLogger("torchrl_reset.train")
 
@@ -66,6 +66,22 @@ def processor_name(cpuinfo: Path = Path("/proc/cpuinfo")) -> str:
 
 class CheckpointDamaged(RuntimeError):
     """No intact checkpoint to resume from; the message names each damaged one and what is wrong with it."""
+
+
+def dump_buffer(rb, path: Path) -> None:
+    """``rb.dumps(path)`` (a replay buffer, or an :class:`~buffers.ArmReplay` of them). A buffer loaded from a
+    checkpoint and not written to since has no last write cursor, and torchrl warns that it "may not be
+    saved properly": that cursor only sets the shift of a checkpointer's save hooks (the trajectory
+    layouts), so where no storage has such hooks, as here, the buffer is saved whole and exactly, and
+    that warning alone is silenced (any hook present: it stands)."""
+    import warnings
+
+    storages = [b.storage for b in getattr(rb, "buffers", [rb])]
+    hookless = all(not getattr(s.checkpointer, "_save_hooks", None) for s in storages)
+    with warnings.catch_warnings():
+        if hookless:
+            warnings.filterwarnings("ignore", message="last_cursor is None", category=UserWarning)
+        rb.dumps(path)
 
 
 class Checkpoints:
@@ -278,7 +294,7 @@ class TrainingState:
         )
         for name, rb in self.buffers.items():
             if len(rb):  # torchrl cannot dump a buffer that never received data
-                rb.dumps(folder / name)
+                dump_buffer(rb, folder / name)
 
     def load(self) -> Path:
         """Loads the newest intact checkpoint into the agents, collector and buffers; sets ``history``. Each

@@ -312,3 +312,35 @@ def test_a_runs_summary_counts_the_quarters_from_its_own_reset_episodes(whole):
         assert (counted["reset_episodes"], counted["successful_resets"]) == (len(ended_there), ended_there.count("success"))
     assert summary["reset_success_rate_last_quarter"] == (last.count("success") / len(last) if last else None)
     assert len(ended) == summary["reset_episodes"]
+
+
+def test_a_buffer_loaded_and_saved_again_without_new_rows_is_saved_whole_and_quietly(tmp_path):
+    """A resume that checkpoints before a buffer gets a new row (a quick stop after a resume, or a phase
+    that did not act): torchrl's storage then has no last write cursor and warns; without save hooks the
+    cursor is unused, so the buffer must come back whole, rows and write position, and without that warning."""
+    import warnings
+
+    import torch
+    from tensordict import TensorDict
+    from torchrl.data import LazyTensorStorage, ReplayBuffer
+
+    from run_files import dump_buffer
+
+    def buffer():
+        return ReplayBuffer(storage=LazyTensorStorage(8), batch_size=4)
+
+    first = buffer()
+    first.extend(TensorDict({"x": torch.arange(11.0)}, batch_size=[11]))  # wrapped round: 8 slots, 11 rows
+    dump_buffer(first, tmp_path / "a")
+    second = buffer()
+    second.loads(tmp_path / "a")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # any warning fails the test
+        dump_buffer(second, tmp_path / "b")
+    third = buffer()
+    third.loads(tmp_path / "b")
+    # slots 0-2 hold rows 8-10, slots 3-7 rows 3-7; the next write goes to slot 3
+    assert third.storage["x"].tolist() == [8.0, 9.0, 10.0, 3.0, 4.0, 5.0, 6.0, 7.0]
+    assert len(third) == 8 and third.writer.state_dict() == first.writer.state_dict()
+    third.extend(TensorDict({"x": torch.tensor([11.0])}, batch_size=[1]))
+    assert third.storage["x"].tolist() == [8.0, 9.0, 10.0, 11.0, 4.0, 5.0, 6.0, 7.0]
