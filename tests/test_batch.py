@@ -27,7 +27,7 @@ sys.path.insert(0, str(RECIPES))
 
 import batch  # noqa: E402
 import train  # noqa: E402
-from config_checks import ConfigError, validate  # noqa: E402
+from config_checks import ConfigError  # noqa: E402
 
 TINY = [
     "hidden_sizes=[16,16]", "heat_up=40", "task.forward_horizon=20", "forward.batch_size=16", "reset.batch_size=16",
