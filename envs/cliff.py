@@ -50,6 +50,15 @@ class _CliffEnv(MujocoResetEnv):
     model_file: str
     edge: float
     far_wall: float
+    #: the height (``qpos[1]``) below which a body past the edge is in the ditch
+    ditch_height: float
+
+    def in_ditch(self, qpos) -> np.ndarray:
+        """Whether each configuration ``qpos`` (``[..., nq]``) is in the ditch: past the edge and below
+        ``ditch_height``, the task's irrecoverable states (one test for the env's latched flag and for
+        ``recipes/recoverable.py``'s rollouts)."""
+        qpos = np.asarray(qpos)
+        return (qpos[..., 0] > self.edge) & (qpos[..., 1] < self.ditch_height)
 
     def _build_spec(self) -> mujoco.MjSpec:
         spec = mujoco.MjSpec.from_file(asset_path("gymnasium", self.model_file))
@@ -98,6 +107,7 @@ class CliffCheetahEnv(_CliffEnv):
     model_file = "half_cheetah.xml"
     edge = 14.0
     far_wall = 16.0
+    ditch_height = -1.0
 
     def _build_spec(self) -> mujoco.MjSpec:
         spec = super()._build_spec()
@@ -125,10 +135,10 @@ class CliffCheetahEnv(_CliffEnv):
         return tolerance(velocity, 9.0, 11.0, 7.0), {"velocity": velocity}
 
     def _status(self, action):
-        x, z, pitch = (float(v) for v in self.data.qpos[:3])
+        x, _, pitch = (float(v) for v in self.data.qpos[:3])
         reset_success = abs(x) < 0.1 and abs(pitch) < 0.1
         reset_reward = 0.8 * (abs(x) < 0.5) + 0.1 * (1.0 - 0.2 * abs(x)) + 0.1 * tolerance(pitch, -0.05, 0.05, 0.1)
-        return reset_success, float(np.clip(reset_reward, 0.0, 1.0)), (x > self.edge and z < -1.0)
+        return reset_success, float(np.clip(reset_reward, 0.0, 1.0)), bool(self.in_ditch(self.data.qpos))
 
 
 class CliffWalkerEnv(_CliffEnv):
@@ -170,6 +180,7 @@ class CliffWalkerEnv(_CliffEnv):
     model_file = "walker2d_v5.xml"
     edge = 6.0
     far_wall = 8.0
+    ditch_height = 0.0
 
     def _build_spec(self) -> mujoco.MjSpec:
         spec = super()._build_spec()
@@ -202,4 +213,4 @@ class CliffWalkerEnv(_CliffEnv):
         stand, upright = self._stand_upright()
         reset_success = abs(x) < 0.5 and abs(h - 1.3) < 0.3 and abs(pitch) < 1.0
         reset_reward = float(np.clip(0.8 * (abs(x) < 0.5) + 0.2 * (1.0 - 0.2 * abs(x)), 0.0, 1.0)) * stand * upright
-        return reset_success, reset_reward, (x > self.edge and h < 0.0)
+        return reset_success, reset_reward, bool(self.in_ditch(self.data.qpos))
