@@ -1,0 +1,135 @@
+"""LNT-sparse's Q-ensemble trained afresh on a run's own data, without and with randomized priors.
+
+    python results/100000-release/probes/offline_lnt_ensemble.py \
+        runs/release/peg_insertion_insert/lnt_sparse/seed0/checkpoints/step_0000095000 \
+        --upto 25000 --seeds 0 1 --updates 3000 --scales 0 3 --out results/100000-release/probes/offline_lnt_ensemble.csv
+
+Why does LNT-sparse's trigger go quiet by 25k on peg-insertion (insert) while its reset agent cannot yet
+reset from where the forward agent goes? Its 20 Q-functions (no priors, one mini-batch for all, targets
+copied) end up nearly one function, and their minimum on the forward agent's states sits far above
+Q_thresh = 0.1. Would members that disagree where there is no data (randomized priors, as ours' classifiers
+have) keep it lower there?
+
+Data: a run's replay buffers as its checkpoint holds them, cut to the rows the run had collected by
+``--upto`` steps (``progress.csv``'s ``forward_steps`` and ``reset_steps`` at that row; the buffers are
+written in order). For each ``--seeds`` and each ``--scales`` (``algo.prior_scale``: 0 is the paper
+preset, 3 ours' beta with the release's prior draw), a fresh LNT-sparse reset agent (the recipe's
+``make_reset_agent``) takes ``--updates`` updates of the recipe's (``train.update``, the release's order,
+on batches of 256 of those reset rows, the kind's ``prepare`` writing the sparse reward). Every ``--every``
+updates, over every forward row ``(s, a)`` (what the trigger scores), the ensemble minimum (mean, and the share
+below Q_thresh) and the members' spread, and the minimum on the reset rows whose next state passes the
+reset check (one step from success: those should stay high).
+"""
+import argparse
+import csv
+import json
+import sys
+from pathlib import Path
+
+import torch
+from hydra import compose, initialize_config_dir
+from tensordict import TensorDict
+
+ROOT = Path(__file__).resolve().parents[3]
+sys.path.insert(0, str(ROOT / "recipes"))
+from agents import make_reset_agent  # noqa: E402
+from reset_agents import reset_kind  # noqa: E402
+from task_envs import task_dimensions  # noqa: E402
+from train import update  # noqa: E402
+
+
+def config(overrides):
+    with initialize_config_dir(config_dir=str(ROOT / "recipes" / "conf"), version_base="1.3"):
+        return compose("config", overrides=["task=peg_insertion_insert", "algo=lnt_sparse", *overrides])
+
+
+def rows_at(checkpoint: Path, upto: int) -> tuple[TensorDict, TensorDict, int, int]:
+    """The forward and reset replay rows the run had written by ``upto`` steps."""
+    run = checkpoint.parents[1]
+    with open(run / "progress.csv", newline="") as f:
+        row = next((r for r in csv.DictReader(f) if int(r["frames"]) == upto), None)
+    if row is None:
+        raise SystemExit(f"{run}/progress.csv has no row at {upto} steps")
+    forward_rows, reset_rows = int(row["forward_steps"]), int(row["reset_steps"])
+    data = []
+    for name, count in (("forward_buffer", forward_rows), ("reset_buffer", reset_rows)):
+        storage = TensorDict.load_memmap(checkpoint / name / "storage")
+        written = json.loads((checkpoint / name / "writer" / "metadata.json").read_text())["write_count"]
+        if written < count:
+            raise SystemExit(f"{checkpoint / name} holds {written} rows, fewer than the {count} written by {upto}")
+        data.append(storage[:count].clone())
+    return data[0], data[1], forward_rows, reset_rows
+
+
+def minimum(model, obs, act, chunk=20000):
+    values = []
+    with torch.no_grad():
+        for i in range(0, obs.shape[0], chunk):
+            td = TensorDict({"observation": obs[i:i + chunk], "action": act[i:i + chunk]}, batch_size=[min(chunk, obs.shape[0] - i)])
+            values.append(model(td)["state_action_value"])
+    return torch.cat(values)
+
+
+def train_and_watch(forward, replay, seed, scale, updates, every, batch_size=256):
+    cfg = config([f"seed={seed}", f"algo.prior_scale={scale}"])
+    torch.manual_seed(seed)
+    obs_dim, action_spec = task_dimensions(cfg)
+    agent = make_reset_agent(cfg, obs_dim, action_spec)
+    kind, q_thresh = reset_kind(cfg), float(cfg.algo.threshold)
+    near = replay[replay["next", "reset_success"].reshape(-1)]
+    generator = torch.Generator().manual_seed(seed)
+    out = []
+
+    def watch(step):
+        fq = minimum(agent.model, forward["observation"], forward["action"])
+        sq = minimum(agent.model, near["observation"], near["action"])
+        fmin, smin = fq.min(-1).values, sq.min(-1).values
+        out.append({"seed": seed, "prior_scale": scale, "updates": step,
+                    "forward_min_mean": float(fmin.mean()), "forward_below_q_thresh": float((fmin < q_thresh).float().mean()),
+                    "forward_member_std": float(fq.std(-1).mean()),
+                    "near_success_min_mean": float(smin.mean()), "near_success_below_q_thresh": float((smin < q_thresh).float().mean())})
+
+    watch(0)
+    for step in range(1, updates + 1):
+        sample = replay[torch.randint(replay.shape[0], (batch_size,), generator=generator)].clone()
+        sample = kind.prepare(sample, {}, None, cfg)
+        update(agent, sample, agent.loss, release_order=True)  # the recipe's update
+        if step % every == 0:
+            watch(step)
+    return out
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("checkpoint", type=Path, help="an LNT-sparse run's checkpoint folder")
+    parser.add_argument("--upto", type=int, default=25000, help="the rows the run had written by this step")
+    parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1])
+    parser.add_argument("--scales", type=float, nargs="+", default=[0.0, 3.0], help="algo.prior_scale values")
+    parser.add_argument("--updates", type=int, default=3000)
+    parser.add_argument("--every", type=int, default=250)
+    parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--out", default=None, help="CSV of every recorded row")
+    args = parser.parse_args()
+    torch.set_num_threads(args.threads)
+    forward, replay, nf, nr = rows_at(args.checkpoint, args.upto)
+    near = int(replay["next", "reset_success"].sum())
+    print(f"data at {args.upto} steps: {nf} forward rows, {nr} reset rows ({near} one step from success)", flush=True)
+    rows = []
+    for seed in args.seeds:
+        for scale in args.scales:
+            trace = train_and_watch(forward, replay, seed, scale, args.updates, args.every)
+            rows += trace
+            for r in (trace[0], trace[len(trace) // 2], trace[-1]):
+                print(f"seed {seed} prior_scale {scale:g} at {r['updates']:>5} updates: forward rows' minimum "
+                      f"{r['forward_min_mean']:.3f} ({r['forward_below_q_thresh']:.0%} below Q_thresh), member std "
+                      f"{r['forward_member_std']:.3f}; near success {r['near_success_min_mean']:.3f} "
+                      f"({r['near_success_below_q_thresh']:.0%} below)", flush=True)
+    if args.out:
+        with open(args.out, "w", newline="") as f:
+            writer = csv.DictWriter(f, fieldnames=list(rows[0]))
+            writer.writeheader()
+            writer.writerows(rows)
+
+
+if __name__ == "__main__":
+    main()
