@@ -114,21 +114,21 @@ def main():
     forward, replay, nf, nr = rows_at(args.checkpoint, args.upto)
     near = int(replay["next", "reset_success"].sum())
     print(f"data at {args.upto} steps: {nf} forward rows, {nr} reset rows ({near} one step from success)", flush=True)
-    rows = []
+    writer = None
     for seed in args.seeds:
         for scale in args.scales:
             trace = train_and_watch(forward, replay, seed, scale, args.updates, args.every)
-            rows += trace
+            if args.out:  # each variant's rows as soon as they are in: a stopped probe keeps what it measured
+                with open(args.out, "a" if writer else "w", newline="") as f:
+                    writer = csv.DictWriter(f, fieldnames=list(trace[0]))
+                    if f.tell() == 0:
+                        writer.writeheader()
+                    writer.writerows(trace)
             for r in (trace[0], trace[len(trace) // 2], trace[-1]):
                 print(f"seed {seed} prior_scale {scale:g} at {r['updates']:>5} updates: forward rows' minimum "
                       f"{r['forward_min_mean']:.3f} ({r['forward_below_q_thresh']:.0%} below Q_thresh), member std "
                       f"{r['forward_member_std']:.3f}; near success {r['near_success_min_mean']:.3f} "
                       f"({r['near_success_below_q_thresh']:.0%} below)", flush=True)
-    if args.out:
-        with open(args.out, "w", newline="") as f:
-            writer = csv.DictWriter(f, fieldnames=list(rows[0]))
-            writer.writeheader()
-            writer.writerows(rows)
 
 
 if __name__ == "__main__":
