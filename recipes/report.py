@@ -590,8 +590,12 @@ def _fit_episodic(ax, manual_lines: list, episodic_lines: list, room: float = 2.
 def fig3_figure(task: str, task_runs: list[RunFolder]):
     """Fig. 3 of one task: the evaluation forward return and the cumulative manual resets against steps, one
     band per algorithm (and setting), each beside the resets an episodic agent would have needed (one per
-    forward episode, ``forward_episodes``), with a note where a return curve is missing or flat."""
-    fig, (ax_ret, ax_man) = plt.subplots(1, 2, figsize=(10, 3.8))
+    forward episode, ``forward_episodes``), with a note where a return curve is missing or flat. On a task with
+    irrecoverable states (runs that log ``irrecoverable_forward``: the cliff tasks), a third panel: the
+    cumulative entries into the ditch in forward steps (solid, with the band) and in reset steps (dotted)."""
+    falls = any("irrecoverable_forward" in run.table("progress.csv") for run in task_runs)
+    fig, axes = plt.subplots(1, 3 if falls else 2, figsize=(15 if falls else 10, 3.8))
+    ax_ret, ax_man = axes[:2]
     settings = sorted({r.setting for r in task_runs})
     settings_differ = len({_line_style(s, settings) for s in settings}) > 1
     groups = figure3_groups(task_runs)
@@ -605,6 +609,11 @@ def fig3_figure(task: str, task_runs: list[RunFolder]):
                               **_episodic_style(style, settings_differ))
         manual_lines += [manual] if manual is not None else []
         episodic_lines += [episodic] if episodic is not None else []
+        if falls:
+            into = _plot_band(axes[2], _curves(members, "progress.csv", "irrecoverable_forward"), color,
+                              f"{label}: forward", style)
+            _plot_band(axes[2], _curves(members, "progress.csv", "irrecoverable_reset"),
+                       into.get_color() if into is not None else color, f"{label}: reset", ":", band=False)
         note = _return_note(members)
         if note is not None:
             notes[label] = note
@@ -617,7 +626,10 @@ def fig3_figure(task: str, task_runs: list[RunFolder]):
                ylabel="discounted return (evaluation)")
     ax_man.set(title="cumulative manual resets\nand an episodic agent's (one per forward episode)",
                xlabel="steps (forward + reset)", ylabel="resets")
-    for ax in (ax_ret, ax_man):
+    if falls:
+        axes[2].set(title="cumulative entries into the ditch\n(in forward steps: solid; in reset steps: dotted)",
+                    xlabel="steps (forward + reset)", ylabel="entries")
+    for ax in axes:
         ax.grid(alpha=0.3)
         if ax.get_legend_handles_labels()[0]:
             ax.legend(fontsize=8)

@@ -296,6 +296,32 @@ def test_fig3_draws_each_groups_episodic_resets_beside_its_manual_resets_in_its_
     report.plt.close(fig)
 
 
+def test_fig3_of_a_cliff_task_counts_the_falls_into_the_ditch_per_phase(tmp_path):
+    """Runs that log the entries into the ditch get a third panel: per algorithm, the mean over seeds of the
+    cumulative entries in forward steps (solid) and in reset steps (dotted, the same colour)."""
+    runs = tmp_path / "runs"
+    header = ["frames", "manual_resets", "forward_episodes", "irrecoverable_forward", "irrecoverable_reset"]
+    write_run(runs, "ours", 0, task="cliff_cheetah", progress=(header, [(1000, 1, 2, 0, 0), (2000, 3, 4, 2, 1)]))
+    write_run(runs, "ours", 1, task="cliff_cheetah", progress=(header, [(1000, 2, 3, 1, 0), (2000, 4, 6, 4, 3)]))
+    write_run(runs, "lnt_sparse", 0, task="cliff_cheetah", progress=(header, [(1000, 1, 1, 1, 1), (2000, 5, 5, 5, 1)]))
+    fig = report.fig3_figure("cliff_cheetah", report.find_runs([runs]))
+    assert len(fig.axes) == 3
+    lines = _lines(fig.axes[2])
+    # ours: forward (0+1)/2, (2+4)/2; reset (0+0)/2, (1+3)/2
+    assert list(lines["ours: forward (n=2)"].get_ydata()) == [0.5, 3.0]
+    assert list(lines["ours: reset (n=2)"].get_ydata()) == [0.0, 2.0]
+    assert list(lines["LNT-sparse: forward (n=1)"].get_ydata()) == [1, 5]
+    assert lines["ours: forward (n=2)"].get_color() == lines["ours: reset (n=2)"].get_color()
+    assert lines["ours: reset (n=2)"].get_linestyle() == ":" and lines["ours: forward (n=2)"].get_linestyle() == "-"
+    assert "ditch" in fig.axes[2].get_title()
+    report.plt.close(fig)
+    # runs without those columns (peg-insertion, or older logs): the two panels only
+    write_run(runs, "ours", 0, progress=_progress([1, 2], [1, 2]))
+    fig = report.fig3_figure("peg_insertion_insert", report.find_runs([runs / "peg_insertion_insert"]))
+    assert len(fig.axes) == 2
+    report.plt.close(fig)
+
+
 def test_fig3_companion_lines_stay_apart_from_other_settings_and_say_when_they_leave_the_panel(tmp_path):
     runs = tmp_path / "runs"
     write_run(runs, "ours", 0, progress=_progress([2, 4, 6, 8], [3, 6, 9, 12]))
