@@ -542,12 +542,12 @@ def _line_style(setting: str, others: list[str]) -> str:
     return ("--", ":", "-.")[variants.index(setting) % 3]
 
 
-def _episodic_style(style: str, settings_differ: bool) -> dict:
-    """Fig. 3's companion line, the resets an episodic agent would have needed, beside a group drawn in
-    ``style``: thin and dashed; where settings already take the line styles, thin in its group's style with
-    hollow markers, so that it is told apart from every other line of the panel."""
+def _episodic_style(style: str, settings_differ: bool, plain: str = "--") -> dict:
+    """Fig. 3's companion line (the resets an episodic agent would have needed; the falls in reset steps) beside
+    a group drawn in ``style``: thin and ``plain`` (dashed); where settings already take the line styles, thin in
+    its group's style with hollow markers, so that it is told apart from every other line of the panel."""
     if not settings_differ:
-        return {"linestyle": "--", "lw": 1.2}
+        return {"linestyle": plain, "lw": 1.2}
     return {"linestyle": style, "lw": 1.2, "marker": "o", "mfc": "none", "ms": 3.5, "markevery": 0.1}
 
 
@@ -592,8 +592,14 @@ def fig3_figure(task: str, task_runs: list[RunFolder]):
     band per algorithm (and setting), each beside the resets an episodic agent would have needed (one per
     forward episode, ``forward_episodes``), with a note where a return curve is missing or flat. On a task with
     irrecoverable states (runs that log ``irrecoverable_forward``: the cliff tasks), a third panel: the
-    cumulative entries into the ditch in forward steps (solid, with the band) and in reset steps (dotted)."""
-    falls = any("irrecoverable_forward" in run.table("progress.csv") for run in task_runs)
+    cumulative entries into the ditch in forward steps (the group's line, with the band) and in reset steps (its
+    companion line: thin and dotted)."""
+    from torchrl_reset_envs import TASKS
+
+    spec = TASKS.get(task)
+    falls = bool(getattr(spec, "has_irrecoverable", False)) and any(
+        "irrecoverable_forward" in run.table("progress.csv") for run in task_runs)
+    lost = "the ditch" if hasattr(getattr(spec, "env_class", None), "in_ditch") else "an irrecoverable state"
     fig, axes = plt.subplots(1, 3 if falls else 2, figsize=(15 if falls else 10, 3.8))
     ax_ret, ax_man = axes[:2]
     settings = sorted({r.setting for r in task_runs})
@@ -613,7 +619,8 @@ def fig3_figure(task: str, task_runs: list[RunFolder]):
             into = _plot_band(axes[2], _curves(members, "progress.csv", "irrecoverable_forward"), color,
                               f"{label}: forward", style)
             _plot_band(axes[2], _curves(members, "progress.csv", "irrecoverable_reset"),
-                       into.get_color() if into is not None else color, f"{label}: reset", ":", band=False)
+                       into.get_color() if into is not None else color, f"{label}: reset", band=False,
+                       **_episodic_style(style, settings_differ, plain=":"))
         note = _return_note(members)
         if note is not None:
             notes[label] = note
@@ -627,7 +634,7 @@ def fig3_figure(task: str, task_runs: list[RunFolder]):
     ax_man.set(title="cumulative manual resets\nand an episodic agent's (one per forward episode)",
                xlabel="steps (forward + reset)", ylabel="resets")
     if falls:
-        axes[2].set(title="cumulative entries into the ditch\n(in forward steps: solid; in reset steps: dotted)",
+        axes[2].set(title=f"cumulative entries into {lost}\n(in forward steps; in reset steps: thin)",
                     xlabel="steps (forward + reset)", ylabel="entries")
     for ax in axes:
         ax.grid(alpha=0.3)

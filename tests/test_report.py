@@ -144,14 +144,14 @@ def test_step_axes_read_in_thousands_and_millions():
     assert [report._steps_label(v) for v in (0, 500, 2000, 12500, 150000, 1.5e6)] == ["0", "500", "2k", "12.5k", "150k", "1.5M"]
 
 
-def _config_yaml(*overrides: str, drop: str | None = None) -> str:
-    """A run's config.yaml as train.py writes it (the composed recipe config, resolved), with ``drop``
+def _config_yaml(*overrides: str, drop: str | None = None, task: str = "peg_insertion_insert") -> str:
+    """A run's config.yaml as train.py writes it (the composed recipe config of ``task``, resolved), with ``drop``
     removed as from a config written before that setting existed."""
     from hydra import compose, initialize_config_dir
     from omegaconf import OmegaConf, open_dict
 
     with initialize_config_dir(config_dir=str(Path(report.__file__).parent / "conf"), version_base="1.3"):
-        cfg = compose(config_name="config", overrides=["task=peg_insertion_insert", "algo=ours", *overrides])
+        cfg = compose(config_name="config", overrides=[f"task={task}", "algo=ours", *overrides])
     if drop is not None:
         section, key = drop.split(".")
         with open_dict(cfg):
@@ -315,8 +315,20 @@ def test_fig3_of_a_cliff_task_counts_the_falls_into_the_ditch_per_phase(tmp_path
     assert lines["ours: reset (n=2)"].get_linestyle() == ":" and lines["ours: forward (n=2)"].get_linestyle() == "-"
     assert "ditch" in fig.axes[2].get_title()
     report.plt.close(fig)
-    # runs without those columns (peg-insertion, or older logs): the two panels only
-    write_run(runs, "ours", 0, progress=_progress([1, 2], [1, 2]))
+    # two settings: the reset line is thin in its group's style with hollow markers, unlike any forward line
+    write_run(runs, "ours", 2, task="cliff_cheetah", config=_config_yaml("algo.prior_scale=2", task="cliff_cheetah"),
+              progress=(header, [(1000, 1, 2, 0, 0), (2000, 3, 4, 1, 1)]))
+    write_run(runs, "ours", 3, task="cliff_cheetah", config=_config_yaml("algo.prior_scale=1", task="cliff_cheetah"),
+              progress=(header, [(1000, 1, 2, 0, 0), (2000, 3, 4, 1, 1)]))
+    fig = report.fig3_figure("cliff_cheetah", report.find_runs([runs / "cliff_cheetah"]))
+    looks = _looks(fig.axes[2])
+    assert len(set(looks)) == len(looks)
+    resets = [line for label, line in _lines(fig.axes[2]).items() if ": reset" in label]
+    assert resets and all(line.get_marker() == "o" and line.get_markerfacecolor() == "none" for line in resets)
+    report.plt.close(fig)
+    # a task without irrecoverable states logs the columns too (zeros): the two panels only; older logs alike
+    write_run(runs, "ours", 0, progress=(header, [(1000, 1, 2, 0, 0), (2000, 3, 4, 0, 0)]))
+    write_run(runs, "ours", 1, progress=_progress([1, 2], [1, 2]))
     fig = report.fig3_figure("peg_insertion_insert", report.find_runs([runs / "peg_insertion_insert"]))
     assert len(fig.axes) == 2
     report.plt.close(fig)
