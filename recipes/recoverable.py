@@ -143,16 +143,20 @@ def _task_env(run: Path):
     return spec.env_class(**spec.kwargs)
 
 
-def verdicts(run: Path, *, candidates: int = 128, horizon: float = 3.0, seed: int = 0) -> list[dict]:
+def verdicts(run: Path, *, candidates: int = 128, horizon: float = 3.0, seed: int = 0,
+             progress: bool = False) -> list[dict]:
     """Each trigger of ``run`` (a run folder of a cliff task): its ``frames``, the x position before it, its
     verdict (``lost``, ``doomed`` or ``saved``, over ``horizon`` seconds) and, when saved, the first sequence of
-    :func:`candidate_actions` that saves it (0: no torque)."""
+    :func:`candidate_actions` that saves it (0: no torque). ``progress``: a progress bar over the triggers."""
+    from tqdm import tqdm
+
     run = Path(run)
     env = _task_env(run)
     nq, nv = env.model.nq, env.model.nv
     actions = candidate_actions(env, candidates, max(1, round(horizon / env.dt)), seed)
     out = []
-    for t in _rows(run / "triggers.csv"):
+    for t in tqdm(_rows(run / "triggers.csv"), desc=f"{run}: trigger states", unit="state", disable=not progress,
+                  mininterval=2.0, dynamic_ncols=True):
         if not t.get("observation"):
             raise ValueError(f"{run}/triggers.csv logs no observation (frame {t.get('frames')}): written by older code")
         obs = np.array([float(v) for v in t["observation"].split()])
@@ -217,7 +221,7 @@ def main(argv=None) -> None:
     for run in args.runs:
         try:
             _progress(run)  # the cheap checks first
-            found = verdicts(run, candidates=args.candidates, horizon=args.horizon, seed=args.seed)
+            found = verdicts(run, candidates=args.candidates, horizon=args.horizon, seed=args.seed, progress=True)
             table = stretch_table(run, found, args.window, args.upto)
         except (ValueError, FileNotFoundError) as error:
             parser.exit(2, f"error: {error}\n")
