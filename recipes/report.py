@@ -636,6 +636,9 @@ def fig3_figure(task: str, task_runs: list[RunFolder]):
     if falls:
         axes[2].set(title=f"cumulative entries into {lost}\n(in forward steps; in reset steps: thin)",
                     xlabel="steps (forward + reset)", ylabel="entries")
+        axes[2].set_ylim(bottom=0)
+        if not any(np.nanmax(line.get_ydata(), initial=0) > 0 for line in axes[2].get_lines()):
+            _panel_note(axes[2], f"no entry into {lost} so far")
     for ax in axes:
         ax.grid(alpha=0.3)
         if ax.get_legend_handles_labels()[0]:

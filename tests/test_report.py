@@ -313,7 +313,12 @@ def test_fig3_of_a_cliff_task_counts_the_falls_into_the_ditch_per_phase(tmp_path
     assert list(lines["LNT-sparse: forward (n=1)"].get_ydata()) == [1, 5]
     assert lines["ours: forward (n=2)"].get_color() == lines["ours: reset (n=2)"].get_color()
     assert lines["ours: reset (n=2)"].get_linestyle() == ":" and lines["ours: forward (n=2)"].get_linestyle() == "-"
-    assert "ditch" in fig.axes[2].get_title()
+    assert "ditch" in fig.axes[2].get_title() and fig.axes[2].get_ylim()[0] == 0 and not _texts(fig.axes[2])
+    report.plt.close(fig)
+    # no fall yet in any run: said on the panel
+    write_run(tmp_path / "calm", "ours", 0, task="cliff_cheetah", progress=(header, [(1000, 1, 2, 0, 0), (2000, 3, 4, 0, 0)]))
+    fig = report.fig3_figure("cliff_cheetah", report.find_runs([tmp_path / "calm"]))
+    assert _texts(fig.axes[2]) == ["no entry into the ditch so far"]
     report.plt.close(fig)
     # two settings: the reset line is thin in its group's style with hollow markers, unlike any forward line
     write_run(runs, "ours", 2, task="cliff_cheetah", config=_config_yaml("algo.prior_scale=2", task="cliff_cheetah"),
