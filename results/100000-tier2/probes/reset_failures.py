@@ -57,7 +57,6 @@ def replay(env, actor, qpos, qvel, *, horizon: int, min_steps: int, noise: dict 
     env.set_state(qpos, qvel)
     obs = np.concatenate([qpos, qvel]).astype(np.float32)
     ou = np.zeros(env.action_space.shape)
-    max_pitch = 0.0
     for step in range(1, horizon + 1):
         with torch.no_grad():
             action = actor(TensorDict(observation=torch.as_tensor(obs)))["action"].numpy().astype(np.float64)
@@ -65,12 +64,10 @@ def replay(env, actor, qpos, qvel, *, horizon: int, min_steps: int, noise: dict 
             ou += noise["theta"] * -ou * noise["dt"] + noise["sigma"] * math.sqrt(noise["dt"]) * rng.standard_normal(ou.shape)
             action = np.clip(action + ou, -1.0, 1.0)
         obs, _, _, _, info = env.step(action)
-        max_pitch = max(max_pitch, abs(wrapped(float(env.data.qpos[2]))))
         if bool(info["reset_success"]) and step >= min_steps:
-            return {"outcome": "success", "steps": step, "max_pitch": max_pitch}
+            return {"outcome": "success", "steps": step}
     qpos_end = np.array(env.data.qpos)
-    return {"outcome": ending(qpos_end), "steps": horizon, "max_pitch": max_pitch,
-            "x": float(qpos_end[0]), "pitch": wrapped(float(qpos_end[2]))}
+    return {"outcome": ending(qpos_end), "steps": horizon, "x": float(qpos_end[0]), "pitch": wrapped(float(qpos_end[2]))}
 
 
 def main(argv=None) -> None:
