@@ -22,7 +22,7 @@ import torch
 from omegaconf import OmegaConf
 
 __all__ = ["RunFolderBusy", "run_folder_lock", "code_version", "processor_name", "Checkpoints", "CheckpointDamaged",
-           "checkpoint_problems", "no_intact_checkpoint", "TrainingState", "RunInterrupted", "stop_on_signals",
+           "checkpoint_step", "checkpoint_problems", "no_intact_checkpoint", "TrainingState", "RunInterrupted", "stop_on_signals",
            "reset_outcomes_by_quarter", "CsvTable", "dump_buffer"]
 
 log = logging.getLogger("torchrl_reset.train")
@@ -105,7 +105,7 @@ class Checkpoints:
     def folders(self) -> list[Path]:
         """Every checkpoint a resume could start from, intact or not, newest first: the ``step_*`` folders up
         to the one ``latest`` names (all of them when ``latest`` is missing or unreadable)."""
-        steps = {_step(path): path for path in self.root.glob("step_*") if _step(path) is not None and path.is_dir()}
+        steps = {s: path for path in self.root.glob("step_*") if (s := checkpoint_step(path)) is not None and path.is_dir()}
         newest = self._pointer()
         return [steps[s] for s in sorted(steps, reverse=True) if newest is None or s <= newest]
 
@@ -154,12 +154,12 @@ class Checkpoints:
 
     def _pointer(self) -> int | None:
         try:
-            return _step(Path(self.root / "latest").read_text().strip())
+            return checkpoint_step(Path(self.root / "latest").read_text().strip())
         except OSError:
             return None
 
     def _point_to(self, folder: Path) -> None:
-        if self._pointer() == _step(folder):
+        if self._pointer() == checkpoint_step(folder):
             return
         pointer_tmp = self.root / f".latest-{os.getpid()}"
         with open(pointer_tmp, "w") as f:
@@ -172,7 +172,7 @@ class Checkpoints:
     def _prune(self, frames: int) -> None:
         """Keeps the newest ``keep`` checkpoints up to step ``frames``; later ones belong to a continuation the
         run no longer has (a damaged checkpoint it resumed before)."""
-        steps = sorted((s, path) for path in self.root.glob("step_*") if (s := _step(path)) is not None)
+        steps = sorted((s, path) for path in self.root.glob("step_*") if (s := checkpoint_step(path)) is not None)
         for s, path in steps:
             if s > frames:
                 shutil.rmtree(path, ignore_errors=True)
@@ -180,7 +180,7 @@ class Checkpoints:
             shutil.rmtree(path, ignore_errors=True)
 
 
-def _step(path) -> int | None:
+def checkpoint_step(path) -> int | None:
     """The step of a checkpoint folder's name (``step_0000000300``: 300), or None for another name."""
     match = _STEP_FOLDER.fullmatch(Path(path).name)
     return int(match[1]) if match else None

@@ -18,15 +18,12 @@ import sys
 from pathlib import Path
 
 import numpy as np
-import torch
-from omegaconf import OmegaConf
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from agents import make_forward_agent, make_reset_agent  # noqa: E402
 from config_checks import reset_horizon  # noqa: E402
-from run_files import Checkpoints  # noqa: E402
-from task_envs import EVAL_SEED_OFFSET, evaluate, make_task_env, task_dimensions  # noqa: E402
+from saved_runs import load_agents  # noqa: E402
+from task_envs import EVAL_SEED_OFFSET, evaluate, make_task_env  # noqa: E402
 
 COLOURS = {"forward": (40, 170, 60), "reset": (40, 90, 220), "trigger": (220, 40, 40)}
 
@@ -41,19 +38,8 @@ def framed(frame: np.ndarray, phase: str, width: int = 4) -> np.ndarray:
 
 def record(run_dir: Path, *, size: int = 240) -> tuple[list[np.ndarray], dict]:
     """The frames of one evaluation of ``run_dir``'s latest checkpoint, and what happened in it."""
-    config = run_dir / "config.yaml"
-    if not config.exists():
-        raise FileNotFoundError(f"{run_dir} holds no config.yaml: is it a run folder of recipes/train.py?")
-    cfg = OmegaConf.load(config)
-    latest = Checkpoints(run_dir / "checkpoints").latest()
-    if latest is None:
-        raise FileNotFoundError(f"{run_dir / 'checkpoints'} holds no complete checkpoint yet.")
-    cfg.device = "cpu"
-    obs_dim, action_spec = task_dimensions(cfg)
-    forward, reset = make_forward_agent(cfg, obs_dim, action_spec), make_reset_agent(cfg, obs_dim, action_spec)
-    state = torch.load(latest / "state.pt", weights_only=False, map_location="cpu")
-    forward.loss.load_state_dict(state["forward_loss"])
-    reset.loss.load_state_dict(state["reset_loss"])
+    saved = load_agents(run_dir)
+    cfg, forward, reset = saved.cfg, saved.forward, saved.reset
     # make_env refuses render_mode for the UR3 tasks (no camera on the twin)
     env, trigger = make_task_env(cfg, reset, for_eval=True, render_mode="rgb_array", width=size, height=size)
     env.set_seed(int(cfg.seed) + EVAL_SEED_OFFSET)  # as the recipe's evaluation env
@@ -62,7 +48,7 @@ def record(run_dir: Path, *, size: int = 240) -> tuple[list[np.ndarray], dict]:
     info = evaluate(env, trigger, forward.actor, reset.actor, horizon=int(cfg.task.forward_horizon),
                     reset_horizon=reset_horizon(cfg), min_reset_steps=int(cfg.reset.min_steps), gamma=float(cfg.gamma),
                     observe=lambda phase: frames.append(framed(env.render(), phase)))
-    info["checkpoint"] = latest.name
+    info["checkpoint"] = saved.checkpoint.name
     env.close()
     return frames, info
 

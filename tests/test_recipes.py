@@ -26,7 +26,7 @@ from agents import make_actor, make_reset_agent  # noqa: E402
 from reset_agents import lnt_batch  # noqa: E402
 from buffers import make_buffers  # noqa: E402
 from run_files import Checkpoints, processor_name  # noqa: E402
-from task_envs import UpdateBudget, realtime_env  # noqa: E402
+from task_envs import UpdateBudget, realtime_env, task_dimensions  # noqa: E402
 from config_checks import ALGOS, ConfigError  # noqa: E402
 
 from torchrl_reset import EnsembleValueOperator, accel  # noqa: E402
@@ -377,6 +377,42 @@ def test_video_plays_the_evaluation_of_the_latest_checkpoint_into_a_gif(tmp_path
     assert np.abs(frames[1][8:-8, 8:-8, :3].astype(int) - frames[-1][8:-8, 8:-8, :3].astype(int)).sum() > 0
     with pytest.raises(FileNotFoundError, match="config.yaml"):
         video.record(tmp_path / "nothing")
+
+
+def test_load_agents_reads_a_run_folders_agents_back_from_its_checkpoints(tmp_path):
+    from saved_runs import load_agents
+
+    train.train(config(tmp_path, "task=ball_in_cup_catch", "total_steps=200"))  # checkpoints at 100 and 200
+    saved = load_agents(tmp_path)
+    assert (saved.step, saved.checkpoint.name, saved.cfg.task.name) == (200, "step_0000000200", "ball_in_cup_catch")
+    state = torch.load(saved.checkpoint / "state.pt", weights_only=False)
+    for agent, key in ((saved.forward, "forward_loss"), (saved.reset, "reset_loss")):
+        loaded = agent.loss.state_dict()
+        assert loaded.keys() == state[key].keys()
+        assert all(torch.equal(loaded[name], value) for name, value in state[key].items())
+    # a freshly built agent acts otherwise: the numbers above came from the checkpoint
+    obs_dim, action_spec = task_dimensions(saved.cfg)
+    observation = TensorDict(observation=torch.linspace(-1, 1, obs_dim).unsqueeze(0), batch_size=[1])
+    torch.manual_seed(123)
+    fresh = make_reset_agent(saved.cfg, obs_dim, action_spec)
+    with torch.no_grad():
+        assert not torch.equal(fresh.actor(observation.clone())["action"], saved.reset.actor(observation.clone())["action"])
+    # an older checkpoint by its folder; the reference ensemble built from the same state gives the
+    # same classifier values as the fast one (the override reaches the build)
+    older = load_agents(tmp_path, checkpoint=tmp_path / "checkpoints" / "step_0000000100")
+    reference = load_agents(tmp_path, checkpoint=older.checkpoint, overrides={"speed.accelerate": False})
+    assert older.step == 100 and reference.cfg.speed.accelerate is False
+    acted = older.reset.actor(observation.clone())
+    with torch.no_grad():
+        fast = older.reset.model(acted.clone())[older.reset.model.out_keys[0]]
+        slow = reference.reset.model(acted.clone())[reference.reset.model.out_keys[0]]
+    assert torch.allclose(fast, slow, atol=1e-5)
+    with pytest.raises(KeyError, match="speed.acelerate"):
+        load_agents(tmp_path, overrides={"speed.acelerate": False})
+    with pytest.raises(FileNotFoundError, match="config.yaml"):
+        load_agents(tmp_path / "nothing")
+    with pytest.raises(FileNotFoundError, match="not a complete checkpoint"):
+        load_agents(tmp_path, checkpoint=tmp_path / "checkpoints")
 
 
 def test_diagnostics_score_every_forward_step_and_resets_csv_has_every_reset_episode(tmp_path):

@@ -35,10 +35,8 @@ ROOT = Path(__file__).resolve().parents[3]
 sys.path.insert(0, str(ROOT / "recipes"))
 sys.path.insert(0, str(ROOT))
 
-from agents import make_reset_agent  # noqa: E402
 from config_checks import reset_horizon  # noqa: E402
-from run_files import Checkpoints  # noqa: E402
-from task_envs import task_dimensions  # noqa: E402
+from saved_runs import load_agents  # noqa: E402
 from envs.tasks import make_gym_env  # noqa: E402
 
 
@@ -76,18 +74,12 @@ def main(argv=None) -> None:
     parser.add_argument("--states", type=int, default=120)
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args(argv)
-    cfg = OmegaConf.load(args.run / "config.yaml")
-    if cfg.task.name != "cliff_cheetah":
-        raise SystemExit(f"{args.run} is a {cfg.task.name} run; this probe reads cliff-cheetah states")
-    cfg.device = "cpu"
-    latest = Checkpoints(args.run / "checkpoints").latest()
-    if latest is None:
-        raise SystemExit(f"{args.run} holds no complete checkpoint")
-    step = int(latest.name.split("_")[-1])
-    obs_dim, action_spec = task_dimensions(cfg)
-    reset = make_reset_agent(cfg, obs_dim, action_spec)
-    reset.loss.load_state_dict(torch.load(latest / "state.pt", weights_only=False, map_location="cpu")["reset_loss"])
-    actor = reset.actor.eval()
+    task = OmegaConf.load(args.run / "config.yaml").task.name
+    if task != "cliff_cheetah":
+        raise SystemExit(f"{args.run} is a {task} run; this probe reads cliff-cheetah states")
+    saved = load_agents(args.run)
+    cfg, latest, step = saved.cfg, saved.checkpoint, saved.step
+    actor = saved.reset.actor.eval()
     with open(args.run / "triggers.csv") as f:
         triggers = [t for t in csv.DictReader(f) if int(t["frames"]) <= step]
     with open(args.run / "resets.csv") as f:

@@ -16,10 +16,9 @@ import torch
 from omegaconf import OmegaConf
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[3] / "recipes"))
-from agents import make_reset_agent  # noqa: E402
 from reset_agents import lnt_batch  # noqa: E402
 from buffers import make_buffers  # noqa: E402
-from task_envs import task_dimensions  # noqa: E402
+from saved_runs import load_agents  # noqa: E402
 
 
 def main(run: str, step: int, csv_path: str | None = None, rows: int = 4096) -> None:
@@ -27,10 +26,9 @@ def main(run: str, step: int, csv_path: str | None = None, rows: int = 4096) -> 
     cfg = OmegaConf.load(Path(run) / "config.yaml")
     if cfg.algo.name not in ("lnt", "lnt_sparse"):
         raise SystemExit(f"{run} is an {cfg.algo.name} run; this probe reads LNT's Q-ensemble.")
-    obs_dim, action_spec = task_dimensions(cfg)
-    agent = make_reset_agent(cfg, obs_dim, action_spec)
     folder = Path(run) / "checkpoints" / f"step_{step:010d}"
-    agent.loss.load_state_dict(torch.load(folder / "state.pt", weights_only=False)["reset_loss"])
+    saved = load_agents(run, checkpoint=folder)
+    cfg, agent = saved.cfg, saved.reset
     _, replay = make_buffers(cfg)
     replay.loads(folder / "reset_buffer")
     held = len(replay)

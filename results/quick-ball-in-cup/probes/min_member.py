@@ -16,26 +16,22 @@ import sys
 from pathlib import Path
 
 import torch
-from omegaconf import OmegaConf
 
 ROOT = Path(__file__).resolve().parents[3]
 sys.path.insert(0, str(ROOT / "recipes"))
-from agents import make_reset_agent  # noqa: E402
 from buffers import make_buffers  # noqa: E402
 from run_files import Checkpoints  # noqa: E402
-from task_envs import task_dimensions  # noqa: E402
+from saved_runs import load_agents  # noqa: E402
 
 from torchrl_reset import EnsembleValueOperator  # noqa: E402
 
 
 def probe(run: Path, rows: int, folder: Path | None = None, brief: bool = False) -> None:
-    cfg = OmegaConf.load(run / "config.yaml")
-    cfg.speed.accelerate = False  # the reference ensemble: its trained and prior parts can be read apart
-    torch.manual_seed(0)
-    obs_dim, action_spec = task_dimensions(cfg)
-    agent = make_reset_agent(cfg, obs_dim, action_spec)
     folder = Checkpoints(run / "checkpoints").folders()[0] if folder is None else folder
-    agent.loss.load_state_dict(torch.load(folder / "state.pt", weights_only=False)["reset_loss"])
+    torch.manual_seed(0)
+    # the reference ensemble: its trained and prior parts can be read apart
+    saved = load_agents(run, checkpoint=folder, overrides={"speed.accelerate": False})
+    cfg, agent = saved.cfg, saved.reset
     _, replay = make_buffers(cfg)
     replay.loads(folder / "reset_buffer")
     states = replay[:][-rows:].select("observation")

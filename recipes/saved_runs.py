@@ -1,0 +1,58 @@
+"""A run folder's trained agents, read back from one of its checkpoints: what the video, the probes
+and anyone studying a finished run start from (the recipe itself resumes through ``run_files``)."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Mapping
+
+import torch
+from omegaconf import DictConfig, OmegaConf
+
+from agents import Agent, make_forward_agent, make_reset_agent
+from run_files import Checkpoints, checkpoint_step
+from task_envs import task_dimensions
+
+__all__ = ["SavedRun", "load_agents"]
+
+_ABSENT = object()
+
+
+@dataclass
+class SavedRun:
+    cfg: DictConfig  # the run's config.yaml, with the overrides applied
+    checkpoint: Path  # the checkpoint folder the agents were read from
+    step: int  # its step (from the folder's name)
+    forward: Agent
+    reset: Agent
+
+
+def load_agents(run_dir: Path | str, *, checkpoint: Path | str | None = None,
+                overrides: Mapping[str, Any] | None = None) -> SavedRun:
+    """Both agents of ``run_dir`` as saved in ``checkpoint`` (default: its latest complete one),
+    built from the run's own config on the CPU. ``overrides`` set dotted config keys before the agents
+    are built (``{"speed.accelerate": False}`` gives the reference ensemble, whose parts can be read
+    apart)."""
+    run_dir = Path(run_dir)
+    config = run_dir / "config.yaml"
+    if not config.exists():
+        raise FileNotFoundError(f"{run_dir} holds no config.yaml: is it a run folder of recipes/train.py?")
+    cfg = OmegaConf.load(config)
+    if checkpoint is None:
+        checkpoint = Checkpoints(run_dir / "checkpoints").latest()
+        if checkpoint is None:
+            raise FileNotFoundError(f"{run_dir / 'checkpoints'} holds no complete checkpoint yet.")
+    checkpoint = Path(checkpoint)
+    if checkpoint_step(checkpoint) is None or not (checkpoint / "state.pt").exists():
+        raise FileNotFoundError(f"{checkpoint} is not a complete checkpoint of a run (a step_<steps> folder holding state.pt).")
+    cfg.device = "cpu"
+    for key, value in (overrides or {}).items():
+        if OmegaConf.select(cfg, key, default=_ABSENT) is _ABSENT:
+            raise KeyError(f"{key!r} is not a key of {config}: an override can only change a setting the run has")
+        OmegaConf.update(cfg, key, value)
+    obs_dim, action_spec = task_dimensions(cfg)
+    forward, reset = make_forward_agent(cfg, obs_dim, action_spec), make_reset_agent(cfg, obs_dim, action_spec)
+    state = torch.load(checkpoint / "state.pt", weights_only=False, map_location="cpu")
+    forward.loss.load_state_dict(state["forward_loss"])
+    reset.loss.load_state_dict(state["reset_loss"])
+    return SavedRun(cfg, checkpoint, checkpoint_step(checkpoint), forward, reset)
