@@ -42,7 +42,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from stretches import _k, _rows, markdown, run_task  # noqa: E402
+from stretches import _k, csv_rows, markdown, resets_by_start, run_task  # noqa: E402
 
 __all__ = ["candidate_actions", "rollout", "stopping_distance", "escapes", "first_escape", "verdicts", "stretch_table", "main"]
 
@@ -155,7 +155,7 @@ def verdicts(run: Path, *, candidates: int = 128, horizon: float = 3.0, seed: in
     nq, nv = env.model.nq, env.model.nv
     actions = candidate_actions(env, candidates, max(1, round(horizon / env.dt)), seed)
     out = []
-    for t in tqdm(_rows(run / "triggers.csv"), desc=f"{run}: trigger states", unit="state", disable=not progress,
+    for t in tqdm(csv_rows(run / "triggers.csv"), desc=f"{run}: trigger states", unit="state", disable=not progress,
                   mininterval=2.0, dynamic_ncols=True):
         if not t.get("observation"):
             raise ValueError(f"{run}/triggers.csv logs no observation (frame {t.get('frames')}): written by older code")
@@ -180,7 +180,7 @@ def stretch_table(run: Path, found: list[dict], window: int, upto: int | None = 
     if window < 1:
         raise ValueError(f"window must be a positive number of steps, got {window!r}")
     progress = _progress(run)
-    after = {int(r["frames"]) - int(r["steps"]): r for r in _rows(Path(run) / "resets.csv")}
+    after = resets_by_start(run)
     last = int(progress[-1]["frames"]) if upto is None else min(upto, int(progress[-1]["frames"]))
     table = []
     for start in range(0, last - window + 1, window):
@@ -197,7 +197,7 @@ def stretch_table(run: Path, found: list[dict], window: int, upto: int | None = 
 
 
 def _progress(run: Path) -> list[dict]:
-    progress = _rows(Path(run) / "progress.csv")
+    progress = csv_rows(Path(run) / "progress.csv")
     if not progress:
         raise FileNotFoundError(f"{run} has no progress.csv rows: not a run folder, or nothing logged yet")
     return progress

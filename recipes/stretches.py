@@ -24,14 +24,21 @@ import csv
 import statistics
 from pathlib import Path
 
-__all__ = ["stretches", "markdown", "run_task", "has_irrecoverable_states"]
+__all__ = ["stretches", "markdown", "run_task", "has_irrecoverable_states", "resets_by_start", "csv_rows"]
 
 
-def _rows(path: Path) -> list[dict]:
+def csv_rows(path: Path) -> list[dict]:
+    """A CSV file's rows as dicts of strings; none for a file not written (yet)."""
     if not path.exists():
         return []
     with open(path, newline="") as f:
         return list(csv.DictReader(f))
+
+
+def resets_by_start(run: Path) -> dict[int, dict]:
+    """``resets.csv``'s rows keyed by the step each reset episode began (``frames - steps``): a trigger's
+    row in ``triggers.csv`` (its ``frames``, the step it fired) finds the reset episode that followed it."""
+    return {int(r["frames"]) - int(r["steps"]): r for r in csv_rows(Path(run) / "resets.csv")}
 
 
 def _at(progress: list[dict], frames: int) -> dict | None:
@@ -68,10 +75,10 @@ def stretches(run: Path, window: int, upto: int | None = None) -> list[dict]:
     run = Path(run)
     if not isinstance(window, int) or window < 1:
         raise ValueError(f"window must be a positive number of steps, got {window!r}")
-    progress = _rows(run / "progress.csv")
+    progress = csv_rows(run / "progress.csv")
     if not progress:
         raise FileNotFoundError(f"{run} has no progress.csv rows: not a run folder, or nothing logged yet")
-    resets, triggers = _rows(run / "resets.csv"), _rows(run / "triggers.csv")
+    resets, triggers = csv_rows(run / "resets.csv"), csv_rows(run / "triggers.csv")
     cliff = has_irrecoverable_states(run) and "irrecoverable_forward" in progress[0]
     last = int(progress[-1]["frames"])
     end_of_run = last if upto is None else min(upto, last)

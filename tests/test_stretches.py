@@ -70,3 +70,14 @@ def test_a_task_without_irrecoverable_states_has_no_cliff_columns_and_bad_input_
     assert "no progress.csv" in capsys.readouterr().err
     stretches.main([str(run), "--window", "1000"])
     assert "| 0-1k | 3 | 3 | 0.700 | 2 | 1 | 1 | 50% |" in capsys.readouterr().out
+
+
+def test_each_trigger_finds_the_reset_episode_that_began_where_it_fired(tmp_path):
+    run = cliff_run(tmp_path / "run")
+    after = stretches.resets_by_start(run)
+    # a reset episode ending at frame 1000 after 200 steps began at 800; the one ending at 300 after 50, at 250
+    assert sorted(after) == [250, 800, 1180, 1600]
+    assert (after[800]["outcome"], after[1180]["outcome"]) == ("manual", "success")
+    # none of this hand-made run's triggers (at 120, 600, 900, 1900) began one: no pairing by nearness
+    assert [after.get(t) for t in (120, 600, 900, 1900)] == [None] * 4
+    assert stretches.resets_by_start(tmp_path / "empty") == {} and stretches.csv_rows(tmp_path / "none.csv") == []

@@ -20,7 +20,6 @@ action box held for 10 s against no torque, and how many steps of each pass the 
 from __future__ import annotations
 
 import argparse
-import csv
 import math
 import statistics
 import sys
@@ -37,6 +36,7 @@ sys.path.insert(0, str(ROOT))
 
 from config_checks import reset_horizon  # noqa: E402
 from saved_runs import load_agents  # noqa: E402
+from stretches import csv_rows, resets_by_start  # noqa: E402
 from envs.tasks import make_gym_env  # noqa: E402
 
 
@@ -80,10 +80,8 @@ def main(argv=None) -> None:
     saved = load_agents(args.run)
     cfg, latest, step = saved.cfg, saved.checkpoint, saved.step
     actor = saved.reset.actor.eval()
-    with open(args.run / "triggers.csv") as f:
-        triggers = [t for t in csv.DictReader(f) if int(t["frames"]) <= step]
-    with open(args.run / "resets.csv") as f:
-        logged = {int(r["frames"]) - int(r["steps"]): r["outcome"] for r in csv.DictReader(f)}
+    triggers = [t for t in csv_rows(args.run / "triggers.csv") if int(t["frames"]) <= step]
+    logged = {start: r["outcome"] for start, r in resets_by_start(args.run).items()}
     chosen = triggers[-args.states:]
     env = make_gym_env("cliff_cheetah")
     nq = env.model.nq

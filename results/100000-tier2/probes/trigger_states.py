@@ -10,11 +10,13 @@ reset episode that followed it (paired by its start, ``frames - steps``): |pitch
 """
 from __future__ import annotations
 
-import csv
 import math
 import statistics
 import sys
 from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[3] / "recipes"))
+from stretches import csv_rows, resets_by_start  # noqa: E402
 
 NQ = 9  # cliff-cheetah: qpos (9) then qvel (9)
 
@@ -28,10 +30,7 @@ def quartiles(values) -> str:
 
 def main(runs) -> None:
     for run in map(Path, runs):
-        with open(run / "resets.csv") as f:
-            resets = list(csv.DictReader(f))
-        with open(run / "triggers.csv") as f:
-            triggers = list(csv.DictReader(f))
+        resets, triggers = csv_rows(run / "resets.csv"), csv_rows(run / "triggers.csv")
         print(f"{run} (to frame {resets[-1]['frames'] if resets else 0})")
         for outcome in ("success", "manual"):
             chosen = [int(r["steps"]) for r in resets if r["outcome"] == outcome]
@@ -42,9 +41,9 @@ def main(runs) -> None:
         early = [v for v, k in zip(speed, steps) if k <= 2]
         print(f"  triggers: {len(triggers)}; within the first 2 forward steps: {len(early)}; |qvel| quartiles there "
               f"{quartiles(early)}, at all triggers {quartiles(speed)}")
-        start = {int(r["frames"]) - int(r["steps"]): r["outcome"] for r in resets}
+        after = resets_by_start(run)
         for outcome in ("success", "manual"):
-            chosen = [s for s, t in zip(states, triggers) if start.get(int(t["frames"])) == outcome]
+            chosen = [s for s, t in zip(states, triggers) if after.get(int(t["frames"]), {}).get("outcome") == outcome]
             print(f"  before a reset that ended in {outcome} ({len(chosen)}): |pitch| quartiles "
                   f"{quartiles(abs(s[2]) for s in chosen)}, pitch rate quartiles {quartiles(s[NQ + 2] for s in chosen)}")
 
