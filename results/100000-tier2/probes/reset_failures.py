@@ -73,11 +73,13 @@ def main(argv=None) -> None:
     parser.add_argument("run", type=Path)
     parser.add_argument("--states", type=int, default=120)
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--checkpoint", type=Path, default=None,
+                        help="a checkpoint folder of the run (default: its latest); trigger states up to its step")
     args = parser.parse_args(argv)
     task = OmegaConf.load(args.run / "config.yaml").task.name
     if task != "cliff_cheetah":
         raise SystemExit(f"{args.run} is a {task} run; this probe reads cliff-cheetah states")
-    saved = load_agents(args.run)
+    saved = load_agents(args.run, checkpoint=args.checkpoint)
     cfg, latest, step = saved.cfg, saved.checkpoint, saved.step
     actor = saved.reset.actor.eval()
     triggers = [t for t in csv_rows(args.run / "triggers.csv") if int(t["frames"]) <= step]
