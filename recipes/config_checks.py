@@ -61,6 +61,11 @@ def validate(cfg: DictConfig) -> None:
         value = OmegaConf.select(cfg, key)
         if not isinstance(value, int) or value < 1:
             problems.append(f"{key} must be a positive integer, got {value!r}")
+    kept = OmegaConf.select(cfg, "keep_states_every", default=None)
+    if kept is not None and (not isinstance(kept, int) or isinstance(kept, bool) or kept < 1
+                             or (isinstance(cfg.checkpoint_every, int) and kept % cfg.checkpoint_every)):
+        problems.append(f"keep_states_every must be null or a positive multiple of checkpoint_every "
+                        f"({cfg.checkpoint_every}), got {kept!r}")
     env = cfg.get("env") or {}
     if env.get("backend", "sim") == "rtde" and not env.get("host"):
         problems.append("env.backend=rtde needs env.host=<the controller's address>")

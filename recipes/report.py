@@ -83,7 +83,7 @@ COLORS = {"ours": "tab:red", "lnt": "tab:blue", "lnt_sparse": "tab:green"}
 #: different settings: reported side by side, never averaged together.
 NOT_A_SETTING = ("seed", "seeds", "vary", "vary_values", "device", "threads", "sweep_dir", "run_dir", "resume",
                  "total_steps", "task.total_steps", "eval_every", "log_every", "checkpoint_every",
-                 "keep_checkpoints", "progress_bar", "logger", "speed", "task.p_thresh")
+                 "keep_checkpoints", "keep_states_every", "progress_bar", "logger", "speed", "task.p_thresh")
 PAPER_SETTING = "paper's setting"
 
 

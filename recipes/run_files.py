@@ -97,9 +97,12 @@ class Checkpoints:
     folder already holds (no step since it was saved or loaded) keeps that folder.
     """
 
-    def __init__(self, root: Path, keep: int = 2):
+    def __init__(self, root: Path, keep: int = 2, keep_states_every: int | None = None):
         self.root = Path(root)
         self.keep = max(1, int(keep))
+        # the agents' state (``state.pt``, without the buffers) of each checkpoint at a multiple of these steps
+        # stays in ``root/kept/step_<frames>/`` after the checkpoint itself is pruned: a run's course, for study
+        self.keep_states_every = int(keep_states_every) if keep_states_every else None
         self.current: str | None = None  # the folder that holds this process's state now (saved or loaded)
 
     def folders(self) -> list[Path]:
@@ -148,6 +151,8 @@ class Checkpoints:
         self._point_to(final)
         if replaced is not None:
             shutil.rmtree(replaced, ignore_errors=True)
+        if self.keep_states_every and frames % self.keep_states_every == 0:
+            self._keep_state(final)
         self._prune(frames)
         self.current = final.name
         return final
@@ -169,12 +174,33 @@ class Checkpoints:
         os.replace(pointer_tmp, self.root / "latest")
         _fsync_dir(self.root)
 
+    def kept(self) -> list[Path]:
+        """The kept states' folders (``kept/step_<frames>/state.pt``), oldest first."""
+        found = [(s, p) for p in (self.root / "kept").glob("step_*") if (s := checkpoint_step(p)) is not None]
+        return [p for _, p in sorted(found) if (p / "state.pt").exists()]
+
+    def _keep_state(self, folder: Path) -> None:
+        """``folder``'s ``state.pt`` linked (copied where links are not possible) into ``kept/``, replacing a
+        state kept there for the same step by a continuation the run no longer has."""
+        kept = self.root / "kept" / folder.name
+        kept.mkdir(parents=True, exist_ok=True)
+        tmp = kept / f".state.pt-{os.getpid()}"
+        tmp.unlink(missing_ok=True)
+        try:
+            os.link(folder / "state.pt", tmp)
+        except OSError:
+            shutil.copy2(folder / "state.pt", tmp)
+        os.replace(tmp, kept / "state.pt")
+
     def _prune(self, frames: int) -> None:
         """Keeps the newest ``keep`` checkpoints up to step ``frames``; later ones belong to a continuation the
-        run no longer has (a damaged checkpoint it resumed before)."""
+        run no longer has (a damaged checkpoint it resumed before), and so do kept states after ``frames``."""
         steps = sorted((s, path) for path in self.root.glob("step_*") if (s := checkpoint_step(path)) is not None)
         for s, path in steps:
             if s > frames:
+                shutil.rmtree(path, ignore_errors=True)
+        for path in self.kept():
+            if checkpoint_step(path) > frames:
                 shutil.rmtree(path, ignore_errors=True)
         for _, path in [(s, path) for s, path in steps if s <= frames][: -self.keep]:
             shutil.rmtree(path, ignore_errors=True)

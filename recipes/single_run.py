@@ -145,7 +145,9 @@ def build_run(cfg: DictConfig, matmul_precision: str) -> TrainingRun:
     eval_env.set_seed(int(cfg.seed) + EVAL_SEED_OFFSET)
     forward_rb, reset_rb = make_buffers(cfg)
 
-    state = TrainingState(Checkpoints(run_dir / "checkpoints", keep=int(cfg.keep_checkpoints)), cfg,
+    checkpoints = Checkpoints(run_dir / "checkpoints", keep=int(cfg.keep_checkpoints),
+                              keep_states_every=OmegaConf.select(cfg, "keep_states_every", default=None))
+    state = TrainingState(checkpoints, cfg,
                           forward, reset, collector, forward_rb, reset_rb, eval_env)
     record = RunRecord(cfg, run_dir, collector, trigger)
     if should_resume(cfg):

@@ -198,6 +198,8 @@ def test_a_crash_while_checkpointing_keeps_the_previous_checkpoint(tmp_path):
         (["algo.name=sac"], "unknown algorithm 'sac'"),
         (["resume=true"], "no complete checkpoint"),
         (["total_steps=0"], "total_steps must be a positive integer"),
+        (["keep_states_every=150"], r"keep_states_every must be null or a positive multiple of checkpoint_every \(100\)"),
+        (["keep_states_every=0"], "keep_states_every must be null or a positive multiple"),
         (["speed.compile=[backward]"], "speed.compile must be a list of agents among forward, reset"),
         (["speed.matmul_precision=fp16"], "speed.matmul_precision must be one of auto, ieee, bf16"),
         (["speed.accelerate=fast"], "speed.accelerate must be true or false"),
@@ -382,7 +384,8 @@ def test_video_plays_the_evaluation_of_the_latest_checkpoint_into_a_gif(tmp_path
 def test_load_agents_reads_a_run_folders_agents_back_from_its_checkpoints(tmp_path):
     from saved_runs import load_agents
 
-    train.train(config(tmp_path, "task=ball_in_cup_catch", "total_steps=200"))  # checkpoints at 100 and 200
+    # checkpoints at 100 and 200, the agents' state of both also kept
+    train.train(config(tmp_path, "task=ball_in_cup_catch", "total_steps=200", "keep_states_every=100"))
     saved = load_agents(tmp_path)
     assert (saved.step, saved.checkpoint.name, saved.cfg.task.name) == (200, "step_0000000200", "ball_in_cup_catch")
     state = torch.load(saved.checkpoint / "state.pt", weights_only=False)
@@ -407,6 +410,9 @@ def test_load_agents_reads_a_run_folders_agents_back_from_its_checkpoints(tmp_pa
         fast = older.reset.model(acted.clone())[older.reset.model.out_keys[0]]
         slow = reference.reset.model(acted.clone())[reference.reset.model.out_keys[0]]
     assert torch.allclose(fast, slow, atol=1e-5)
+    kept = load_agents(tmp_path, checkpoint=tmp_path / "checkpoints" / "kept" / "step_0000000100")
+    assert kept.step == 100 and all(torch.equal(kept.reset.loss.state_dict()[name], value)
+                                    for name, value in older.reset.loss.state_dict().items())
     with pytest.raises(KeyError, match="speed.acelerate"):
         load_agents(tmp_path, overrides={"speed.acelerate": False})
     with pytest.raises(FileNotFoundError, match="config.yaml"):

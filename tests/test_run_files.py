@@ -167,6 +167,26 @@ def test_saving_the_state_a_checkpoint_already_holds_writes_nothing_and_keep_cou
     assert resumed.latest().name == "step_0000000250" and (tmp_path / "latest").read_text() == "step_0000000250"
 
 
+def test_the_agents_state_of_every_kept_step_outlives_its_checkpoint_and_a_lost_continuation_drops_it(tmp_path):
+    checkpoints = Checkpoints(tmp_path, keep=2, keep_states_every=200)
+    for frames in (100, 200, 300, 400, 500):
+        checkpoints.save(frames, write_state(b"%d" % frames), {"frames": frames})
+    assert sorted(p.name for p in tmp_path.glob("step_*")) == ["step_0000000400", "step_0000000500"]
+    # steps 200 and 400 are multiples of 200: their state.pt stays, without the buffers
+    assert [p.name for p in checkpoints.kept()] == ["step_0000000200", "step_0000000400"]
+    assert [(p / "state.pt").read_bytes() for p in checkpoints.kept()] == [b"200", b"400"]
+    assert sorted(q.name for q in (tmp_path / "kept" / "step_0000000200").iterdir()) == ["state.pt"]
+    assert checkpoints.latest().name == "step_0000000500"  # kept states are not checkpoints a resume reads
+
+    # a run that resumed from an older checkpoint (the later ones damaged) and saves step 350: the states
+    # kept past 350 belong to a continuation it no longer has; reaching 400 again keeps the new state
+    resumed = Checkpoints(tmp_path, keep=2, keep_states_every=200)
+    resumed.save(350, write_state(b"350"), {"frames": 350})
+    assert [p.name for p in resumed.kept()] == ["step_0000000200"]
+    resumed.save(400, write_state(b"400 again"), {"frames": 400})
+    assert (tmp_path / "kept" / "step_0000000400" / "state.pt").read_bytes() == b"400 again"
+
+
 # ------------------------------------------------------------------------------ with training runs
 @pytest.fixture(scope="module")
 def whole(tmp_path_factory):

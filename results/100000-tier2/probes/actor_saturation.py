@@ -4,7 +4,7 @@
         --checkpoints runs/tier2/archive/ours/seed2 --out saturation_ours_seed2
 
 A run keeps only its last two checkpoints; ``--checkpoints`` names a folder of kept ``step_*/state.pt``
-copies (default: the run's own ``checkpoints``). On one fixed set of states, ``--states`` trigger states
+(default: the run's ``checkpoints/kept``, written with ``keep_states_every``, or else its ``checkpoints``). On one fixed set of states, ``--states`` trigger states
 drawn evenly from the run's whole ``triggers.csv`` (the states the reset actor starts from), each
 checkpoint's reset actor (no exploration) gives: the median |output before the tanh| per motor, the
 share of action components beyond +-0.99 (where tanh' < 0.02: the actor's gradient to that output is
@@ -68,14 +68,15 @@ def main(argv=None) -> list[dict]:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("run", type=Path, help="a run folder written by recipes/train.py")
     parser.add_argument("--checkpoints", type=Path, default=None,
-                        help="a folder of step_*/state.pt (default: the run's checkpoints)")
+                        help="a folder of step_*/state.pt (default: the run's checkpoints/kept, else its checkpoints)")
     parser.add_argument("--states", type=int, default=200, help="trigger states in the fixed set")
     parser.add_argument("--out", type=Path, default=None, help="writes <out>.csv and <out>.png")
     args = parser.parse_args(argv)
     if args.states < 1:
         parser.error("--states must be positive")
     torch.set_num_threads(1)
-    folder = args.checkpoints or args.run / "checkpoints"
+    folder = args.checkpoints or next((f for f in (args.run / "checkpoints" / "kept", args.run / "checkpoints")
+                                       if f.is_dir()), args.run / "checkpoints")
     found = sorted((s, p) for p in folder.glob("step_*") if (s := checkpoint_step(p)) is not None
                    and (p / "state.pt").exists())
     if not found:
