@@ -31,9 +31,8 @@ def load_agents(run_dir: Path | str, *, checkpoint: Path | str | None = None,
                 overrides: Mapping[str, Any] | None = None) -> SavedRun:
     """Both agents of ``run_dir`` as saved in ``checkpoint`` (default: its latest complete one; also a
     kept state, ``checkpoints/kept/step_<steps>``, see ``keep_states_every``), built from the run's own
-    config on the CPU. ``overrides`` set dotted config keys before the agents
-    are built (``{"speed.accelerate": False}`` gives the reference ensemble, whose parts can be read
-    apart)."""
+    config on the CPU. ``overrides`` set dotted config keys before the agents are built
+    (``{"speed.accelerate": False}`` gives the reference ensemble, whose parts can be read apart)."""
     run_dir = Path(run_dir)
     config = run_dir / "config.yaml"
     if not config.exists():
