@@ -23,17 +23,23 @@ class SavedRun:
     cfg: DictConfig  # the run's config.yaml, with the overrides applied
     checkpoint: Path  # the checkpoint folder the agents were read from
     step: int  # its step (from the folder's name)
-    forward: Agent
-    reset: Agent
+    forward: Agent | None  # None where not asked for (``agents``)
+    reset: Agent | None
 
 
 def load_agents(run_dir: Path | str, *, checkpoint: Path | str | None = None,
-                overrides: Mapping[str, Any] | None = None) -> SavedRun:
-    """Both agents of ``run_dir`` as saved in ``checkpoint`` (default: its latest complete one; also a
+                overrides: Mapping[str, Any] | None = None,
+                agents: tuple[str, ...] = ("forward", "reset")) -> SavedRun:
+    """The agents of ``run_dir`` as saved in ``checkpoint`` (default: its latest complete one; also a
     kept state, ``checkpoints/kept/step_<steps>``, see ``keep_states_every``), built from the run's own
     config on the CPU. ``overrides`` set dotted config keys before the agents are built
-    (``{"speed.accelerate": False}`` gives the reference ensemble, whose parts can be read apart)."""
+    (``{"speed.accelerate": False}`` gives the reference ensemble, whose parts can be read apart).
+    ``agents`` names the ones to build (``("reset",)`` for a probe of the reset agent alone); the others
+    are None in the result."""
     run_dir = Path(run_dir)
+    unknown = set(agents) - {"forward", "reset"}
+    if isinstance(agents, str) or unknown or not agents:
+        raise ValueError(f"agents must name 'forward' and/or 'reset' (a tuple), got {agents!r}")
     config = run_dir / "config.yaml"
     if not config.exists():
         raise FileNotFoundError(f"{run_dir} holds no config.yaml: is it a run folder of recipes/train.py?")
@@ -51,8 +57,12 @@ def load_agents(run_dir: Path | str, *, checkpoint: Path | str | None = None,
             raise KeyError(f"{key!r} is not a key of {config}: an override can only change a setting the run has")
         OmegaConf.update(cfg, key, value)
     obs_dim, action_spec = task_dimensions(cfg)
-    forward, reset = make_forward_agent(cfg, obs_dim, action_spec), make_reset_agent(cfg, obs_dim, action_spec)
     state = torch.load(checkpoint / "state.pt", weights_only=False, map_location="cpu")
-    forward.loss.load_state_dict(state["forward_loss"])
-    reset.loss.load_state_dict(state["reset_loss"])
+    forward = reset = None
+    if "forward" in agents:
+        forward = make_forward_agent(cfg, obs_dim, action_spec)
+        forward.loss.load_state_dict(state["forward_loss"])
+    if "reset" in agents:
+        reset = make_reset_agent(cfg, obs_dim, action_spec)
+        reset.loss.load_state_dict(state["reset_loss"])
     return SavedRun(cfg, checkpoint, checkpoint_step(checkpoint), forward, reset)

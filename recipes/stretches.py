@@ -24,7 +24,7 @@ import csv
 import statistics
 from pathlib import Path
 
-__all__ = ["stretches", "markdown", "run_task", "has_irrecoverable_states", "resets_by_start", "csv_rows"]
+__all__ = ["stretches", "markdown", "run_task", "has_irrecoverable_states", "resets_by_start", "keyed_by_start", "csv_rows"]
 
 
 def csv_rows(path: Path) -> list[dict]:
@@ -35,10 +35,15 @@ def csv_rows(path: Path) -> list[dict]:
         return list(csv.DictReader(f))
 
 
-def resets_by_start(run: Path) -> dict[int, dict]:
-    """``resets.csv``'s rows keyed by the step each reset episode began (``frames - steps``): a trigger's
+def keyed_by_start(resets: list[dict]) -> dict[int, dict]:
+    """Rows of ``resets.csv`` keyed by the step each reset episode began (``frames - steps``): a trigger's
     row in ``triggers.csv`` (its ``frames``, the step it fired) finds the reset episode that followed it."""
-    return {int(r["frames"]) - int(r["steps"]): r for r in csv_rows(Path(run) / "resets.csv")}
+    return {int(r["frames"]) - int(r["steps"]): r for r in resets}
+
+
+def resets_by_start(run: Path) -> dict[int, dict]:
+    """``keyed_by_start`` of a run folder's ``resets.csv``."""
+    return keyed_by_start(csv_rows(Path(run) / "resets.csv"))
 
 
 def _at(progress: list[dict], frames: int) -> dict | None:

@@ -413,6 +413,12 @@ def test_load_agents_reads_a_run_folders_agents_back_from_its_checkpoints(tmp_pa
     kept = load_agents(tmp_path, checkpoint=tmp_path / "checkpoints" / "kept" / "step_0000000100")
     assert kept.step == 100 and all(torch.equal(kept.reset.loss.state_dict()[name], value)
                                     for name, value in older.reset.loss.state_dict().items())
+    alone = load_agents(tmp_path, checkpoint=older.checkpoint, agents=("reset",))
+    assert alone.forward is None and all(torch.equal(alone.reset.loss.state_dict()[name], value)
+                                         for name, value in older.reset.loss.state_dict().items())
+    for bad in ("reset", (), ("forward", "rest")):
+        with pytest.raises(ValueError, match="agents must name"):
+            load_agents(tmp_path, agents=bad)
     with pytest.raises(KeyError, match="speed.acelerate"):
         load_agents(tmp_path, overrides={"speed.acelerate": False})
     with pytest.raises(FileNotFoundError, match="config.yaml"):

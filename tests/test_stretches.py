@@ -80,4 +80,5 @@ def test_each_trigger_finds_the_reset_episode_that_began_where_it_fired(tmp_path
     assert (after[800]["outcome"], after[1180]["outcome"]) == ("manual", "success")
     # none of this hand-made run's triggers (at 120, 600, 900, 1900) began one: no pairing by nearness
     assert [after.get(t) for t in (120, 600, 900, 1900)] == [None] * 4
+    assert stretches.keyed_by_start(stretches.csv_rows(run / "resets.csv")) == after  # the rows already read
     assert stretches.resets_by_start(tmp_path / "empty") == {} and stretches.csv_rows(tmp_path / "none.csv") == []

@@ -88,7 +88,7 @@ def main(argv=None) -> list[dict]:
     print("step | median |pre-tanh| per motor | |a| > 0.99 | corners | most common corner (share) | resets since the last checkpoint: successful / ended")
     rows = []
     for (step, path), (ok, ended) in zip(found, successes):
-        row = {"step": step, **saturation(load_agents(args.run, checkpoint=path).reset.actor.eval(), states),
+        row = {"step": step, **saturation(load_agents(args.run, checkpoint=path, agents=("reset",)).reset.actor.eval(), states),
                "resets_successful": ok, "resets_ended": ended}
         rows.append(row)
         print(f"{step} | {' '.join(f'{v:.1f}' for v in row['pre_tanh_median'])} | {row['saturated']:.0%} | {row['corners']} | "

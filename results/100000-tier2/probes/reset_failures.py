@@ -79,7 +79,7 @@ def main(argv=None) -> None:
     task = OmegaConf.load(args.run / "config.yaml").task.name
     if task != "cliff_cheetah":
         raise SystemExit(f"{args.run} is a {task} run; this probe reads cliff-cheetah states")
-    saved = load_agents(args.run, checkpoint=args.checkpoint)
+    saved = load_agents(args.run, checkpoint=args.checkpoint, agents=("reset",))
     cfg, latest, step = saved.cfg, saved.checkpoint, saved.step
     actor = saved.reset.actor.eval()
     triggers = [t for t in csv_rows(args.run / "triggers.csv") if int(t["frames"]) <= step]

@@ -16,7 +16,7 @@ import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[3] / "recipes"))
-from stretches import csv_rows, resets_by_start  # noqa: E402
+from stretches import csv_rows, keyed_by_start  # noqa: E402
 
 NQ = 9  # cliff-cheetah: qpos (9) then qvel (9)
 
@@ -41,7 +41,7 @@ def main(runs) -> None:
         early = [v for v, k in zip(speed, steps) if k <= 2]
         print(f"  triggers: {len(triggers)}; within the first 2 forward steps: {len(early)}; |qvel| quartiles there "
               f"{quartiles(early)}, at all triggers {quartiles(speed)}")
-        after = resets_by_start(run)
+        after = keyed_by_start(resets)
         for outcome in ("success", "manual"):
             chosen = [s for s, t in zip(states, triggers) if after.get(int(t["frames"]), {}).get("outcome") == outcome]
             print(f"  before a reset that ended in {outcome} ({len(chosen)}): |pitch| quartiles "
