@@ -104,6 +104,17 @@ class Checkpoints:
         # stays in ``root/kept/step_<frames>/`` after the checkpoint itself is pruned: a run's course, for study
         self.keep_states_every = int(keep_states_every) if keep_states_every else None
         self.current: str | None = None  # the folder that holds this process's state now (saved or loaded)
+        self.trusted: set[str] = set()  # checkpoint folders this process wrote or verified and loaded
+        self.resumed_from: int | None = None  # the step of the checkpoint this process loaded
+        self._kept_here: set[str] = set()  # the kept states this process wrote
+
+    def loaded(self, folder: Path) -> None:
+        """Records that this process resumed from ``folder`` (verified, then read): its state is what the
+        process holds now, and the kept states past its step that another process wrote are a lost
+        continuation's."""
+        self.current = Path(folder).name
+        self.trusted.add(self.current)
+        self.resumed_from = checkpoint_step(folder)
 
     def folders(self) -> list[Path]:
         """Every checkpoint a resume could start from, intact or not, newest first: the ``step_*`` folders up
@@ -133,6 +144,9 @@ class Checkpoints:
         if final.name == self.current and final.is_dir():
             # no step since this state was saved or loaded: the folder holds it already (and may be read now)
             self._point_to(final)
+            self.trusted.add(final.name)
+            self._drop_lost_kept(frames)
+            self._keep_due(frames)
             self._prune(frames)
             return final
         for stale in self.root.glob(".tmp-*"):  # left by a crash while checkpointing (one process per run folder)
@@ -151,8 +165,9 @@ class Checkpoints:
         self._point_to(final)
         if replaced is not None:
             shutil.rmtree(replaced, ignore_errors=True)
-        if self.keep_states_every and frames % self.keep_states_every == 0:
-            self._keep_state(final)
+        self.trusted.add(final.name)
+        self._drop_lost_kept(frames)
+        self._keep_due(frames)
         self._prune(frames)
         self.current = final.name
         return final
@@ -179,28 +194,80 @@ class Checkpoints:
         found = [(s, p) for p in (self.root / "kept").glob("step_*") if (s := checkpoint_step(p)) is not None]
         return [p for _, p in sorted(found) if (p / "state.pt").exists()]
 
+    def due_for_keeping(self, frames: int) -> bool:
+        """Whether a checkpoint at step ``frames`` keeps its state: the first checkpoint at or past each
+        multiple of ``keep_states_every`` does (the multiple itself in a run on one env; with N arms an
+        iteration takes up to N steps and a checkpoint may land a few steps past it)."""
+        every = self.keep_states_every
+        if not every or frames < every:
+            return False
+        mark = frames // every * every
+        return not any(mark <= checkpoint_step(p) < frames for p in self.kept())
+
+    def _keep_due(self, frames: int) -> None:
+        """Keeps the state of every checkpoint up to ``frames`` that is due and not kept yet, oldest first: the
+        one just written, and one whose keeping a crash interrupted (then loaded again by the resume). Only
+        folders this process wrote or verified and loaded are read: an older one may be damaged."""
+        if not self.keep_states_every:
+            return
+        steps = sorted((s, path) for path in self.root.glob("step_*")
+                       if (s := checkpoint_step(path)) is not None and s <= frames and path.name in self.trusted)
+        for s, path in steps:
+            # a kept state is complete once its manifest is in place (written last)
+            if not (self.root / "kept" / path.name / MANIFEST).exists() and self.due_for_keeping(s):
+                self._keep_state(path)
+
     def _keep_state(self, folder: Path) -> None:
-        """``folder``'s ``state.pt`` linked (copied where links are not possible) into ``kept/``, replacing a
-        state kept there for the same step by a continuation the run no longer has."""
+        """``folder``'s ``state.pt`` linked (copied where links are not possible) into ``kept/``, with its
+        ``meta.json`` and a manifest of ``state.pt`` alone (so ``checkpoint_problems`` checks a kept state as
+        it checks a checkpoint), replacing a state kept there for the same step by a continuation the run no
+        longer has. Each file is written under a temporary name, synced, then renamed into place."""
         kept = self.root / "kept" / folder.name
         kept.mkdir(parents=True, exist_ok=True)
         tmp = kept / f".state.pt-{os.getpid()}"
         tmp.unlink(missing_ok=True)
         try:
-            os.link(folder / "state.pt", tmp)
+            os.link(folder / "state.pt", tmp)  # the checkpoint's file, synced when it was written
         except OSError:
             shutil.copy2(folder / "state.pt", tmp)
+            with open(tmp, "rb") as f:
+                os.fsync(f.fileno())
+        entry = json.loads((folder / MANIFEST).read_text())["files"]["state.pt"] if (folder / MANIFEST).exists() else None
+        texts = {"meta.json": (folder / "meta.json").read_text() if (folder / "meta.json").exists() else None,
+                 MANIFEST: json.dumps({"files": {"state.pt": entry}}, indent=1) if entry else None}
+        for name, text in texts.items():
+            if text is None:
+                continue
+            part = kept / f".{name}-{os.getpid()}"
+            with open(part, "w") as f:
+                f.write(text)
+                f.flush()
+                os.fsync(f.fileno())
+        # the manifest last: until it is in place, an interrupted keeping reads as damaged, not as intact
         os.replace(tmp, kept / "state.pt")
+        for name in ("meta.json", MANIFEST):
+            if texts[name] is not None:
+                os.replace(kept / f".{name}-{os.getpid()}", kept / name)
+        _fsync_dir(kept)
+        _fsync_dir(kept.parent)
+        self._kept_here.add(kept.name)
+
+    def _drop_lost_kept(self, frames: int) -> None:
+        """Removes the kept states of a continuation the run no longer has (it resumed before them, from a
+        checkpoint older than a damaged one): those past ``frames``, and those past the step this process
+        resumed from that it did not keep itself."""
+        for path in self.kept():
+            step = checkpoint_step(path)
+            if step > frames or (self.resumed_from is not None and step > self.resumed_from
+                                 and path.name not in self._kept_here):
+                shutil.rmtree(path, ignore_errors=True)
 
     def _prune(self, frames: int) -> None:
         """Keeps the newest ``keep`` checkpoints up to step ``frames``; later ones belong to a continuation the
-        run no longer has (a damaged checkpoint it resumed before), and so do kept states after ``frames``."""
+        run no longer has (a damaged checkpoint it resumed before)."""
         steps = sorted((s, path) for path in self.root.glob("step_*") if (s := checkpoint_step(path)) is not None)
         for s, path in steps:
             if s > frames:
-                shutil.rmtree(path, ignore_errors=True)
-        for path in self.kept():
-            if checkpoint_step(path) > frames:
                 shutil.rmtree(path, ignore_errors=True)
         for _, path in [(s, path) for s, path in steps if s <= frames][: -self.keep]:
             shutil.rmtree(path, ignore_errors=True)
@@ -350,7 +417,7 @@ class TrainingState:
         random.setstate(state["rng"]["python"])
         if state.get("eval_env") is not None:  # absent from checkpoints written before it was kept
             _simulator(self.eval_env).set_simulator_state(state["eval_env"])
-        self.checkpoints.current = folder.name
+        self.checkpoints.loaded(folder)
         return folder
 
 

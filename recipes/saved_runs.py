@@ -6,11 +6,14 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Mapping
 
+import json
+import warnings
+
 import torch
 from omegaconf import DictConfig, OmegaConf
 
 from agents import Agent, make_forward_agent, make_reset_agent
-from run_files import Checkpoints, checkpoint_step
+from run_files import MANIFEST, CheckpointDamaged, Checkpoints, checkpoint_problems, checkpoint_step
 from task_envs import task_dimensions
 
 __all__ = ["SavedRun", "load_agents"]
@@ -35,7 +38,9 @@ def load_agents(run_dir: Path | str, *, checkpoint: Path | str | None = None,
     config on the CPU. ``overrides`` set dotted config keys before the agents are built
     (``{"speed.accelerate": False}`` gives the reference ensemble, whose parts can be read apart).
     ``agents`` names the ones to build (``("reset",)`` for a probe of the reset agent alone); the others
-    are None in the result."""
+    are None in the result. A ``checkpoint`` given (absolute, relative to the working directory, or to
+    ``run_dir``) is checked as a resume checks one: a damaged one raises ``CheckpointDamaged``, another
+    run's (task, algo, seed or arms differ) ``ValueError``."""
     run_dir = Path(run_dir)
     unknown = set(agents) - {"forward", "reset"}
     if isinstance(agents, str) or unknown or not agents:
@@ -48,9 +53,14 @@ def load_agents(run_dir: Path | str, *, checkpoint: Path | str | None = None,
         checkpoint = Checkpoints(run_dir / "checkpoints").latest()
         if checkpoint is None:
             raise FileNotFoundError(f"{run_dir / 'checkpoints'} holds no complete checkpoint yet.")
-    checkpoint = Path(checkpoint)
-    if checkpoint_step(checkpoint) is None or not (checkpoint / "state.pt").exists():
-        raise FileNotFoundError(f"{checkpoint} is not a complete checkpoint of a run (a step_<steps> folder holding state.pt).")
+    else:
+        checkpoint = Path(checkpoint)
+        if not checkpoint.is_absolute() and not checkpoint.exists() and (run_dir / checkpoint).exists():
+            checkpoint = run_dir / checkpoint  # relative to the run folder
+        if checkpoint_step(checkpoint) is None or not (checkpoint / "state.pt").exists():
+            raise FileNotFoundError(f"{checkpoint} is not a complete checkpoint of a run (a step_<steps> folder "
+                                    "holding state.pt).")
+        _check(checkpoint, run_dir, cfg)
     cfg.device = "cpu"
     for key, value in (overrides or {}).items():
         if OmegaConf.select(cfg, key, default=_ABSENT) is _ABSENT:
@@ -66,3 +76,22 @@ def load_agents(run_dir: Path | str, *, checkpoint: Path | str | None = None,
         reset = make_reset_agent(cfg, obs_dim, action_spec)
         reset.loss.load_state_dict(state["reset_loss"])
     return SavedRun(cfg, checkpoint, checkpoint_step(checkpoint), forward, reset)
+
+
+def _check(checkpoint: Path, run_dir: Path, cfg: DictConfig) -> None:
+    """A checkpoint named by hand is checked as a resume checks one: its files against its manifest
+    (CheckpointDamaged), and its ``meta.json`` against the run's config (ValueError for another run's)."""
+    if not (checkpoint / MANIFEST).exists() and not (checkpoint / "meta.json").exists():
+        warnings.warn(f"{checkpoint} holds no manifest.json or meta.json (a state kept by older code): read unverified",
+                      stacklevel=3)
+        return
+    problems = checkpoint_problems(checkpoint)
+    if problems:
+        raise CheckpointDamaged(f"{checkpoint} is damaged: " + "; ".join(problems))
+    meta = json.loads((checkpoint / "meta.json").read_text()) if (checkpoint / "meta.json").exists() else {}
+    ours = {"task": cfg.task.name, "algo": cfg.algo.name, "seed": int(cfg.seed),
+            "arms": OmegaConf.select(cfg, "arms", default=None)}
+    differ = {key: (meta[key], value) for key, value in ours.items() if key in meta and meta[key] != value}
+    if differ:
+        raise ValueError(f"{checkpoint} was saved by another run than {run_dir}: "
+                         + ", ".join(f"{key} {saved!r} there, {value!r} here" for key, (saved, value) in differ.items()))

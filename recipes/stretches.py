@@ -37,12 +37,27 @@ def csv_rows(path: Path) -> list[dict]:
 
 def keyed_by_start(resets: list[dict]) -> dict[int, dict]:
     """Rows of ``resets.csv`` keyed by the step each reset episode began (``frames - steps``): a trigger's
-    row in ``triggers.csv`` (its ``frames``, the step it fired) finds the reset episode that followed it."""
-    return {int(r["frames"]) - int(r["steps"]): r for r in resets}
+    row in ``triggers.csv`` (its ``frames``, the step it fired) finds the reset episode that followed it.
+    Two rows with one start cannot come from a run on one env: refused (ValueError)."""
+    keyed = {}
+    for r in resets:
+        start = int(r["frames"]) - int(r["steps"])
+        if start in keyed:
+            raise ValueError(f"two reset episodes began at step {start} (ending at frames {keyed[start]['frames']} and "
+                             f"{r['frames']}): not the resets.csv of a run on one env")
+        keyed[start] = r
+    return keyed
 
 
 def resets_by_start(run: Path) -> dict[int, dict]:
-    """``keyed_by_start`` of a run folder's ``resets.csv``."""
+    """``keyed_by_start`` of a run folder's ``resets.csv``. An ``arms`` run is refused (ValueError): its
+    ``frames`` count the steps of all its envs, and ``steps`` one env's, so ``frames - steps`` is no start."""
+    from omegaconf import OmegaConf
+
+    cfg, _ = run_task(run)
+    arms = None if cfg is None else OmegaConf.select(cfg, "arms", default=None)
+    if arms is not None and int(arms) > 1:
+        raise ValueError(f"{run} ran {arms} arms: its reset episodes cannot be paired with its triggers by their start")
     return keyed_by_start(csv_rows(Path(run) / "resets.csv"))
 
 

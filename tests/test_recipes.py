@@ -382,6 +382,7 @@ def test_video_plays_the_evaluation_of_the_latest_checkpoint_into_a_gif(tmp_path
 
 
 def test_load_agents_reads_a_run_folders_agents_back_from_its_checkpoints(tmp_path):
+    from run_files import CheckpointDamaged
     from saved_runs import load_agents
 
     # checkpoints at 100 and 200, the agents' state of both also kept
@@ -421,6 +422,24 @@ def test_load_agents_reads_a_run_folders_agents_back_from_its_checkpoints(tmp_pa
             load_agents(tmp_path, agents=bad)
     with pytest.raises(KeyError, match="speed.acelerate"):
         load_agents(tmp_path, overrides={"speed.acelerate": False})
+    # a checkpoint by hand is checked as a resume checks it: relative to the run folder, damaged, another run's
+    assert load_agents(tmp_path, checkpoint="checkpoints/kept/step_0000000100", agents=("reset",)).step == 100
+    other = tmp_path / "other"
+    other.mkdir()
+    from omegaconf import OmegaConf
+
+    other_cfg = OmegaConf.load(tmp_path / "config.yaml")
+    other_cfg.seed = 5
+    OmegaConf.save(other_cfg, other / "config.yaml")
+    with pytest.raises(ValueError, match="seed 0 there, 5 here"):
+        load_agents(other, checkpoint=older.checkpoint)
+    with open(kept.checkpoint / "state.pt", "r+b") as f:  # the kept link and step 100's checkpoint: one file
+        f.seek(100)
+        byte = f.read(1)
+        f.seek(100)
+        f.write(bytes([byte[0] ^ 0xFF]))
+    with pytest.raises(CheckpointDamaged, match="state.pt differs from the manifest"):
+        load_agents(tmp_path, checkpoint=kept.checkpoint)
     with pytest.raises(FileNotFoundError, match="config.yaml"):
         load_agents(tmp_path / "nothing")
     with pytest.raises(FileNotFoundError, match="not a complete checkpoint"):

@@ -21,7 +21,8 @@ sys.path.insert(0, str(RECIPES))
 
 import train  # noqa: E402
 from config_checks import ConfigError, should_resume, validate  # noqa: E402
-from run_files import Checkpoints, CsvTable, reset_outcomes_by_quarter, stop_on_signals  # noqa: E402
+from run_files import (Checkpoints, CsvTable, checkpoint_problems, checkpoint_step, reset_outcomes_by_quarter,  # noqa: E402
+                       stop_on_signals)
 
 TINY = [
     "hidden_sizes=[16,16]", "heat_up=40", "task.forward_horizon=20", "forward.batch_size=16", "reset.batch_size=16",
@@ -175,7 +176,13 @@ def test_the_agents_state_of_every_kept_step_outlives_its_checkpoint_and_a_lost_
     # steps 200 and 400 are multiples of 200: their state.pt stays, without the buffers
     assert [p.name for p in checkpoints.kept()] == ["step_0000000200", "step_0000000400"]
     assert [(p / "state.pt").read_bytes() for p in checkpoints.kept()] == [b"200", b"400"]
-    assert sorted(q.name for q in (tmp_path / "kept" / "step_0000000200").iterdir()) == ["state.pt"]
+    kept200 = tmp_path / "kept" / "step_0000000200"
+    # the state without the buffers, with the checkpoint's meta and a manifest of the state alone
+    assert sorted(q.name for q in kept200.iterdir()) == ["manifest.json", "meta.json", "state.pt"]
+    assert json.loads((kept200 / "meta.json").read_text())["frames"] == 200
+    assert json.loads((kept200 / "manifest.json").read_text())["files"] == {
+        "state.pt": {"size": 3, "sha256": hashlib.sha256(b"200").hexdigest()}}
+    assert checkpoint_problems(kept200) == []
     assert checkpoints.latest().name == "step_0000000500"  # kept states are not checkpoints a resume reads
 
     # a run that resumed from an older checkpoint (the later ones damaged) and saves step 350: the states
@@ -185,6 +192,68 @@ def test_the_agents_state_of_every_kept_step_outlives_its_checkpoint_and_a_lost_
     assert [p.name for p in resumed.kept()] == ["step_0000000200"]
     resumed.save(400, write_state(b"400 again"), {"frames": 400})
     assert (tmp_path / "kept" / "step_0000000400" / "state.pt").read_bytes() == b"400 again"
+
+
+def test_with_arms_the_first_checkpoint_past_each_multiple_keeps_its_state(tmp_path):
+    # an iteration over N arms takes up to N steps: checkpoints due every 100 steps land at 102, 201, 300, 402
+    for every, expected in ((100, [102, 201, 300, 402]), (200, [201, 402])):
+        checkpoints = Checkpoints(tmp_path / str(every), keep=1, keep_states_every=every)
+        for frames in (102, 201, 300, 402):
+            checkpoints.save(frames, write_state(b"%d" % frames), {"frames": frames})
+        assert [checkpoint_step(p) for p in checkpoints.kept()] == expected
+        assert [(p / "state.pt").read_bytes() for p in checkpoints.kept()] == [b"%d" % f for f in expected]
+
+    # a resume from 300 (the 402 checkpoint damaged) that lands at 401: the lost continuation's 402 goes,
+    # 401 is kept in its place; one that lands at 403 after a lost 401 likewise drops 401 and keeps 403
+    for lost, again in ((402, 401), (401, 403)):
+        root = tmp_path / f"lost{lost}"
+        first = Checkpoints(root, keep=2, keep_states_every=200)
+        for frames in (201, 300, lost):
+            first.save(frames, write_state(b"%d" % frames), {"frames": frames})
+        resumed = Checkpoints(root, keep=2, keep_states_every=200)
+        resumed.loaded(root / "step_0000000300")
+        resumed.save(again, write_state(b"again"), {"frames": again})
+        assert [checkpoint_step(p) for p in resumed.kept()] == [201, again]
+
+
+def test_a_state_whose_keeping_a_crash_cut_short_is_kept_after_the_resume(tmp_path, monkeypatch):
+    checkpoints = Checkpoints(tmp_path, keep=1, keep_states_every=200)
+    checkpoints.save(100, write_state(b"100"), {"frames": 100})
+    real = Checkpoints._keep_state
+
+    def crash(self, folder):
+        raise KeyboardInterrupt("the process ends while keeping")
+    monkeypatch.setattr(Checkpoints, "_keep_state", crash)
+    with pytest.raises(KeyboardInterrupt):
+        checkpoints.save(200, write_state(b"200"), {"frames": 200})
+    monkeypatch.setattr(Checkpoints, "_keep_state", real)
+    assert checkpoints.kept() == [] and checkpoints.latest().name == "step_0000000200"
+    # the resume reads step 200 and runs on to 300; keeping only one checkpoint, 200's folder would go now:
+    # its state is kept first
+    resumed = Checkpoints(tmp_path, keep=1, keep_states_every=200)
+    resumed.loaded(resumed.latest())
+    resumed.save(300, write_state(b"300"), {"frames": 300})
+    assert sorted(p.name for p in tmp_path.glob("step_*")) == ["step_0000000300"]
+    assert [(p.name, (p / "state.pt").read_bytes()) for p in resumed.kept()] == [("step_0000000200", b"200")]
+
+
+def test_a_kept_state_is_a_link_where_the_file_system_allows_and_a_checked_copy_where_not(tmp_path, monkeypatch):
+    linked = Checkpoints(tmp_path / "linked", keep=2, keep_states_every=100)
+    linked.save(100, write_state(b"100"), {"frames": 100})
+    kept = tmp_path / "linked" / "kept" / "step_0000000100" / "state.pt"
+    assert kept.stat().st_ino == (tmp_path / "linked" / "step_0000000100" / "state.pt").stat().st_ino
+
+    def no_links(src, dst):
+        raise OSError(1, "Operation not permitted")
+    monkeypatch.setattr(os, "link", no_links)
+    copied = Checkpoints(tmp_path / "copied", keep=2, keep_states_every=100)
+    copied.save(100, write_state(b"100"), {"frames": 100})
+    kept = tmp_path / "copied" / "kept" / "step_0000000100"
+    assert (kept / "state.pt").read_bytes() == b"100"
+    assert (kept / "state.pt").stat().st_ino != (tmp_path / "copied" / "step_0000000100" / "state.pt").stat().st_ino
+    assert checkpoint_problems(kept) == []
+    (kept / "state.pt").write_bytes(b"101")  # changed after it was kept: the manifest tells
+    assert checkpoint_problems(kept) == ["state.pt differs from the manifest's sha256 (changed after it was written)"]
 
 
 # ------------------------------------------------------------------------------ with training runs

@@ -81,4 +81,11 @@ def test_each_trigger_finds_the_reset_episode_that_began_where_it_fired(tmp_path
     # none of this hand-made run's triggers (at 120, 600, 900, 1900) began one: no pairing by nearness
     assert [after.get(t) for t in (120, 600, 900, 1900)] == [None] * 4
     assert stretches.keyed_by_start(stretches.csv_rows(run / "resets.csv")) == after  # the rows already read
+    # two episodes beginning at one step come from an arms run (frames counts every arm's steps): refused
+    with pytest.raises(ValueError, match="two reset episodes began at step 140"):
+        stretches.keyed_by_start([{"frames": "180", "steps": "40"}, {"frames": "180", "steps": "40"}])
+    arms = cliff_run(tmp_path / "arms")
+    (arms / "config.yaml").write_text("task:\n  name: cliff_cheetah\narms: 3\n")
+    with pytest.raises(ValueError, match="3 arms"):
+        stretches.resets_by_start(arms)
     assert stretches.resets_by_start(tmp_path / "empty") == {} and stretches.csv_rows(tmp_path / "none.csv") == []

@@ -82,7 +82,8 @@ def main(argv=None) -> list[dict]:
     if not found:
         raise SystemExit(f"{folder} holds no step_*/state.pt")
     states = fixed_states(args.run, args.states)
-    every = int(OmegaConf.load(args.run / "config.yaml").checkpoint_every)
+    # the first stretch as long as those between the states found (kept every so many steps, or checkpoints)
+    every = found[1][0] - found[0][0] if len(found) > 1 else int(OmegaConf.load(args.run / "config.yaml").checkpoint_every)
     successes = success_by_stretch(args.run, [s for s, _ in found], first=max(0, found[0][0] - every))
     print(f"{args.run}: {len(found)} checkpoints, {len(states)} fixed trigger states")
     print("step | median |pre-tanh| per motor | |a| > 0.99 | corners | most common corner (share) | resets since the last checkpoint: successful / ended")
