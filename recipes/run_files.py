@@ -105,7 +105,7 @@ class Checkpoints:
         self.keep_states_every = int(keep_states_every) if keep_states_every else None
         self.current: str | None = None  # the folder that holds this process's state now (saved or loaded)
         self.trusted: set[str] = set()  # checkpoint folders this process wrote or verified and loaded
-        self.resumed_from: int | None = None  # the step of the checkpoint this process loaded
+        self.started_from: int | None = None  # 0 for a fresh start, the checkpoint's step for a resume
         self._kept_here: set[str] = set()  # the kept states this process wrote
 
     def loaded(self, folder: Path) -> None:
@@ -114,7 +114,11 @@ class Checkpoints:
         continuation's."""
         self.current = Path(folder).name
         self.trusted.add(self.current)
-        self.resumed_from = checkpoint_step(folder)
+        self.started_from = checkpoint_step(folder)
+
+    def started_fresh(self) -> None:
+        """Records that this process starts its run at step 0: any state kept in the folder is another attempt's."""
+        self.started_from = 0
 
     def folders(self) -> list[Path]:
         """Every checkpoint a resume could start from, intact or not, newest first: the ``step_*`` folders up
@@ -213,8 +217,10 @@ class Checkpoints:
         steps = sorted((s, path) for path in self.root.glob("step_*")
                        if (s := checkpoint_step(path)) is not None and s <= frames and path.name in self.trusted)
         for s, path in steps:
-            # a kept state is complete once its manifest is in place (written last)
-            if not (self.root / "kept" / path.name / MANIFEST).exists() and self.due_for_keeping(s):
+            # a kept state is complete once its manifest is in place (written last); one at this step that
+            # this process did not keep is another process's (the same state after a resume: kept again)
+            done = (self.root / "kept" / path.name / MANIFEST).exists() and (s < frames or path.name in self._kept_here)
+            if not done and self.due_for_keeping(s):
                 self._keep_state(path)
 
     def _keep_state(self, folder: Path) -> None:
@@ -254,11 +260,11 @@ class Checkpoints:
 
     def _drop_lost_kept(self, frames: int) -> None:
         """Removes the kept states of a continuation the run no longer has (it resumed before them, from a
-        checkpoint older than a damaged one): those past ``frames``, and those past the step this process
-        resumed from that it did not keep itself."""
+        checkpoint older than a damaged one, or started afresh): those past ``frames``, and those past the
+        step this process started from that it did not keep itself."""
         for path in self.kept():
             step = checkpoint_step(path)
-            if step > frames or (self.resumed_from is not None and step > self.resumed_from
+            if step > frames or (self.started_from is not None and step > self.started_from
                                  and path.name not in self._kept_here):
                 shutil.rmtree(path, ignore_errors=True)
 

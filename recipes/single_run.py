@@ -155,6 +155,7 @@ def build_run(cfg: DictConfig, matmul_precision: str) -> TrainingRun:
         record.begin(state.history)
         log.info("resumed from %s at step %d", folder, collector.frames)
     else:
+        checkpoints.started_fresh()
         record.begin(None)
     state.history = record.history
     robot = realtime_env(env)

@@ -216,6 +216,26 @@ def test_with_arms_the_first_checkpoint_past_each_multiple_keeps_its_state(tmp_p
         assert [checkpoint_step(p) for p in resumed.kept()] == [201, again]
 
 
+def test_states_kept_by_another_attempt_are_not_taken_for_this_runs(tmp_path):
+    first = Checkpoints(tmp_path, keep=2, keep_states_every=100)
+    for frames in (100, 200):
+        first.save(frames, write_state(b"old %d" % frames), {"frames": frames})
+    for folder in tmp_path.glob("step_*"):  # its checkpoints removed by hand; its kept states left behind
+        shutil.rmtree(folder)
+    (tmp_path / "latest").unlink()
+    # a fresh start there: everything kept before is another attempt's, gone at its first checkpoint
+    fresh = Checkpoints(tmp_path, keep=2, keep_states_every=200)
+    fresh.started_fresh()
+    fresh.save(100, write_state(b"100"), {"frames": 100})
+    assert fresh.kept() == []
+    fresh.save(200, write_state(b"200"), {"frames": 200})
+    assert [(p.name, (p / "state.pt").read_bytes()) for p in fresh.kept()] == [("step_0000000200", b"200")]
+    # a writer that knows nothing of how it started still replaces a state kept at the step it saves
+    other = Checkpoints(tmp_path, keep=2, keep_states_every=200)
+    other.save(200, write_state(b"200 again"), {"frames": 200})
+    assert (tmp_path / "kept" / "step_0000000200" / "state.pt").read_bytes() == b"200 again"
+
+
 def test_a_state_whose_keeping_a_crash_cut_short_is_kept_after_the_resume(tmp_path, monkeypatch):
     checkpoints = Checkpoints(tmp_path, keep=1, keep_states_every=200)
     checkpoints.save(100, write_state(b"100"), {"frames": 100})
