@@ -42,7 +42,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from stretches import _k, csv_rows, markdown, resets_by_start, run_task  # noqa: E402
+from stretches import _k, csv_rows, markdown, resets_by_start, run_task, within  # noqa: E402
 
 __all__ = ["candidate_actions", "rollout", "stopping_distance", "escapes", "first_escape", "verdicts", "stretch_table", "main"]
 
@@ -185,7 +185,7 @@ def stretch_table(run: Path, found: list[dict], window: int, upto: int | None = 
     table = []
     for start in range(0, last - window + 1, window):
         end = start + window
-        here = [v for v in found if start < v["frames"] <= end]
+        here = [v for v in found if within(v["frames"], start, end)]
         saved = [v for v in here if v["verdict"] == "saved"]
         table.append({
             "steps": f"{_k(start)}-{_k(end)}", "triggers": len(here),

@@ -24,7 +24,7 @@ import csv
 import statistics
 from pathlib import Path
 
-__all__ = ["stretches", "markdown", "run_task", "has_irrecoverable_states", "resets_by_start", "keyed_by_start", "csv_rows"]
+__all__ = ["stretches", "markdown", "run_task", "has_irrecoverable_states", "resets_by_start", "keyed_by_start", "csv_rows", "within"]
 
 
 def csv_rows(path: Path) -> list[dict]:
@@ -33,6 +33,12 @@ def csv_rows(path: Path) -> list[dict]:
         return []
     with open(path, newline="") as f:
         return list(csv.DictReader(f))
+
+
+def within(frames: int, start: int, end: int) -> bool:
+    """Whether an event logged at step ``frames`` falls in the stretch ``(start, end]``: an event is logged at
+    the step count after it, so the first stretch also holds step 0 (a trigger on the run's first action)."""
+    return start < frames <= end or frames == start == 0
 
 
 def keyed_by_start(resets: list[dict]) -> dict[int, dict]:
@@ -109,8 +115,8 @@ def stretches(run: Path, window: int, upto: int | None = None) -> list[dict]:
             break
         a, b = _at(progress, start), _at(progress, end)
         steps = int(b["frames"]) - (int(a["frames"]) if a else 0)
-        fired = [t for t in triggers if start < int(t["frames"]) <= end]
-        ended = [r for r in resets if start < int(r["frames"]) <= end]
+        fired = [t for t in triggers if within(int(t["frames"]), start, end)]
+        ended = [r for r in resets if within(int(r["frames"]), start, end)]
         success = sum(r["outcome"] == "success" for r in ended)
         row = {"steps": f"{_k(start)}-{_k(end)}", "triggers": len(fired)}
         if cliff:

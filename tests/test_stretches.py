@@ -89,3 +89,16 @@ def test_each_trigger_finds_the_reset_episode_that_began_where_it_fired(tmp_path
     with pytest.raises(ValueError, match="3 arms"):
         stretches.resets_by_start(arms)
     assert stretches.resets_by_start(tmp_path / "empty") == {} and stretches.csv_rows(tmp_path / "none.csv") == []
+
+
+def test_a_trigger_on_the_runs_first_action_falls_in_the_first_stretch(tmp_path):
+    # an event is logged at the step count after it: a trigger on the first forward action is logged at 0
+    assert stretches.within(0, 0, 1000) and stretches.within(1000, 0, 1000)
+    assert not stretches.within(1000, 1000, 2000) and not stretches.within(0, 1000, 2000)
+    run = cliff_run(tmp_path / "run")
+    write(run / "triggers.csv", ["frames", "steps", "value", "irrecoverable", "observation"], [
+        [0, 0, 2.0, 0, ""], [120, 40, 1.0, 0, ""], [600, 80, 3.0, 0, ""], [900, 90, 5.0, 1, ""], [1900, 200, 4.0, 0, ""],
+    ])
+    first, second = stretches.stretches(run, window=1000)
+    # x positions 2, 1, 3, 5 -> median 2.5; the second stretch as before
+    assert (first["triggers"], first["trigger position (median)"], second["triggers"]) == (4, "2.5", 1)
