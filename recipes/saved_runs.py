@@ -2,12 +2,11 @@
 and anyone studying a finished run start from (the recipe itself resumes through ``run_files``)."""
 from __future__ import annotations
 
+import json
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Mapping
-
-import json
-import warnings
 
 import torch
 from omegaconf import DictConfig, OmegaConf
