@@ -9,7 +9,7 @@ from torchrl.data import LazyTensorStorage, ReplayBuffer
 
 from absent_keys import setting
 from agents import Agent
-from config_checks import arm_count
+from run_files import arm_count
 from reset_agents import reset_kind
 from torchrl_reset import EpisodeWindowSampler
 

@@ -12,10 +12,10 @@ from omegaconf import DictConfig, OmegaConf
 from torchrl_reset.accel import MATMUL_PRECISIONS
 from absent_keys import setting
 from reset_agents import KINDS, reset_kind
-from run_files import Checkpoints, no_intact_checkpoint
+from run_files import Checkpoints, arm_count, identity_differences, no_intact_checkpoint
 from torchrl_reset_envs import TASKS
 
-__all__ = ["ALGOS", "ConfigError", "arm_count", "reset_horizon", "validate", "should_resume", "torch_threads",
+__all__ = ["ALGOS", "ConfigError", "reset_horizon", "validate", "should_resume", "torch_threads",
            "recipe_settings", "unknown_settings"]
 
 
@@ -25,11 +25,6 @@ CONF = Path(__file__).resolve().parent / "conf"
 
 class ConfigError(ValueError):
     """A configuration that cannot run; raised before anything is built."""
-
-
-def arm_count(cfg: DictConfig) -> int | None:
-    """``arms``: None for one environment, or N: one agent pair over N copies of the task (one run)."""
-    return OmegaConf.select(cfg, "arms", default=None)
 
 
 def reset_horizon(cfg: DictConfig) -> int:
@@ -118,13 +113,11 @@ def validate(cfg: DictConfig) -> None:
             raise ConfigError(no_intact_checkpoint(checkpoints.root, damaged))
         if latest is None:
             raise ConfigError(f"resume=true but {checkpoints.root} holds no complete checkpoint to resume from.")
-        meta = json.loads((latest / "meta.json").read_text())
-        for key, value in (("task", cfg.task.name), ("algo", cfg.algo.name), ("arms", arm_count(cfg))):
-            if meta.get(key) != value:
-                raise ConfigError(
-                    f"the checkpoint in {latest} is from {key} {meta.get(key)!r}, this run is {key} {value!r}; "
-                    "use another run_dir or the matching task and algo."
-                )
+        for key, (saved, value) in identity_differences(json.loads((latest / "meta.json").read_text()), cfg).items():
+            raise ConfigError(
+                f"the checkpoint in {latest} is from {key} {saved!r}, this run is {key} {value!r}; "
+                "use another run_dir or the matching task, algo, seed and arms."
+            )
     elif held := checkpoints.folders():
         raise ConfigError(
             f"{cfg.run_dir} already holds a checkpoint ({held[0].name}); pass resume=true to "

@@ -16,7 +16,8 @@ from omegaconf import DictConfig
 from absent_keys import setting
 from agents import Agent, with_exploration
 from buffers import buffer_keys
-from config_checks import arm_count, reset_horizon
+from config_checks import reset_horizon
+from run_files import arm_count
 from reset_agents import reset_kind
 from task_envs import UpdateBudget
 from torchrl_reset import DualCollector

@@ -21,9 +21,10 @@ import numpy as np
 import torch
 from omegaconf import OmegaConf
 
-__all__ = ["RunFolderBusy", "run_folder_lock", "code_version", "processor_name", "Checkpoints", "CheckpointDamaged",
-           "checkpoint_step", "checkpoint_problems", "no_intact_checkpoint", "TrainingState", "RunInterrupted", "stop_on_signals",
-           "reset_outcomes_by_quarter", "CsvTable", "dump_buffer"]
+__all__ = ["RunFolderBusy", "run_folder_lock", "arm_count", "run_identity", "identity_differences", "code_version",
+           "processor_name", "Checkpoints", "CheckpointDamaged", "checkpoint_step", "checkpoint_problems",
+           "no_intact_checkpoint", "TrainingState", "RunInterrupted", "stop_on_signals", "reset_outcomes_by_quarter",
+           "CsvTable", "dump_buffer"]
 
 log = logging.getLogger("torchrl_reset.train")
 
@@ -62,6 +63,22 @@ def processor_name(cpuinfo: Path = Path("/proc/cpuinfo")) -> str:
     widest = next((label for flag, label in (("avx512_bf16", "AVX-512 BF16"), ("avx512f", "AVX-512"), ("avx2", "AVX2"))
                    if flag in flags), None)
     return f"{name}, {widest}" if widest else name
+
+
+def arm_count(cfg) -> int | None:
+    """``arms``: None for one environment, or N: one agent pair over N copies of the task (one run)."""
+    return OmegaConf.select(cfg, "arms", default=None)
+
+
+def run_identity(cfg) -> dict:
+    """What names a run in its checkpoints' ``meta.json``: task, algorithm, seed and arms."""
+    return {"task": cfg.task.name, "algo": cfg.algo.name, "seed": int(cfg.seed), "arms": arm_count(cfg)}
+
+
+def identity_differences(meta: dict, cfg) -> dict[str, tuple]:
+    """``{key: (saved, here)}`` for each part of :func:`run_identity` where a checkpoint's ``meta.json`` names
+    another run than ``cfg`` (a key that ``meta.json`` lacks reads None: one environment, for ``arms``)."""
+    return {key: (meta.get(key), value) for key, value in run_identity(cfg).items() if meta.get(key) != value}
 
 
 class CheckpointDamaged(RuntimeError):
@@ -371,8 +388,7 @@ class TrainingState:
     def save(self) -> Path:
         """A complete checkpoint at the collector's step (crash-safe: see :class:`Checkpoints`)."""
         cfg = self.cfg
-        meta = {"task": cfg.task.name, "algo": cfg.algo.name, "seed": int(cfg.seed), "frames": self.collector.frames,
-                "arms": OmegaConf.select(cfg, "arms", default=None)}
+        meta = {**run_identity(cfg), "frames": self.collector.frames}
         if self.before_save is not None:
             self.before_save()
         return self.checkpoints.save(self.collector.frames, self._write, meta)

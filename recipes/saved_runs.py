@@ -12,8 +12,7 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 
 from agents import Agent, make_forward_agent, make_reset_agent
-from config_checks import arm_count
-from run_files import MANIFEST, CheckpointDamaged, Checkpoints, checkpoint_problems, checkpoint_step
+from run_files import MANIFEST, CheckpointDamaged, Checkpoints, checkpoint_problems, checkpoint_step, identity_differences
 from task_envs import task_dimensions
 
 __all__ = ["SavedRun", "load_agents"]
@@ -88,9 +87,7 @@ def _check(checkpoint: Path, run_dir: Path, cfg: DictConfig) -> None:
     problems = checkpoint_problems(checkpoint)
     if problems:
         raise CheckpointDamaged(f"{checkpoint} is damaged: " + "; ".join(problems))
-    meta = json.loads((checkpoint / "meta.json").read_text()) if (checkpoint / "meta.json").exists() else {}
-    ours = {"task": cfg.task.name, "algo": cfg.algo.name, "seed": int(cfg.seed), "arms": arm_count(cfg)}
-    differ = {key: (meta[key], value) for key, value in ours.items() if key in meta and meta[key] != value}
+    differ = identity_differences(json.loads((checkpoint / "meta.json").read_text()), cfg)
     if differ:
         raise ValueError(f"{checkpoint} was saved by another run than {run_dir}: "
                          + ", ".join(f"{key} {saved!r} there, {value!r} here" for key, (saved, value) in differ.items()))

@@ -10,7 +10,7 @@ from torchrl.envs import TransformedEnv
 from torchrl.envs.utils import ExplorationType, set_exploration_type, step_mdp
 
 from agents import Agent, make_trigger
-from config_checks import arm_count
+from run_files import arm_count
 from torchrl_reset import ResetTriggerTransform
 from torchrl_reset_envs import BatchedTaskEnv, make_env
 

@@ -36,10 +36,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from agents import Agent  # noqa: E402
 from batch import batch_runs, run_configs, train_batch  # noqa: E402
-from config_checks import ConfigError, arm_count, validate  # noqa: E402
+from config_checks import ConfigError, validate  # noqa: E402
 from learner import NonFiniteLoss  # noqa: E402
-from run_files import (Checkpoints, CheckpointDamaged, RunFolderBusy, RunInterrupted, run_folder_lock,  # noqa: E402
-                       stop_on_signals)
+from run_files import (Checkpoints, CheckpointDamaged, RunFolderBusy, RunInterrupted, arm_count,  # noqa: E402
+                       run_folder_lock, stop_on_signals)
 from single_run import RobotStopped, TrainingDiverged, build_run, set_up_process  # noqa: E402
 
 from torchrl_reset import DualCollector  # noqa: E402

@@ -214,10 +214,13 @@ def test_bad_configs_fail_before_training(tmp_path, overrides, message):
     assert not (tmp_path / "progress.csv").exists()
 
 
-def test_resume_from_another_tasks_checkpoint_and_rerun_without_resume_fail(tmp_path):
+def test_resume_from_another_runs_checkpoint_and_rerun_without_resume_fail(tmp_path):
     train.train(config(tmp_path, "task=peg_insertion_insert", "total_steps=100"))
     with pytest.raises(ConfigError, match="from task 'peg_insertion_insert'"):
         train.train(config(tmp_path, "task=ball_in_cup_catch", "total_steps=200", "resume=true"))
+    # another seed in the same folder would carry on the first seed's random streams under the second's name
+    with pytest.raises(ConfigError, match="is from seed 0, this run is seed 3"):
+        train.train(config(tmp_path, "task=peg_insertion_insert", "seed=3", "total_steps=200", "resume=auto"))
     with pytest.raises(ConfigError, match="pass resume=true"):
         train.train(config(tmp_path, "task=peg_insertion_insert", "total_steps=200"))
 

@@ -21,8 +21,8 @@ sys.path.insert(0, str(RECIPES))
 
 import train  # noqa: E402
 from config_checks import ConfigError, should_resume, validate  # noqa: E402
-from run_files import (Checkpoints, CsvTable, checkpoint_problems, checkpoint_step, reset_outcomes_by_quarter,  # noqa: E402
-                       stop_on_signals)
+from run_files import (Checkpoints, CsvTable, checkpoint_problems, checkpoint_step, identity_differences,  # noqa: E402
+                       reset_outcomes_by_quarter, stop_on_signals)
 
 TINY = [
     "hidden_sizes=[16,16]", "heat_up=40", "task.forward_horizon=20", "forward.batch_size=16", "reset.batch_size=16",
@@ -453,3 +453,16 @@ def test_a_buffer_loaded_and_saved_again_without_new_rows_is_saved_whole_and_qui
     assert len(third) == 8 and third.writer.state_dict() == first.writer.state_dict()
     third.extend(TensorDict({"x": torch.tensor([11.0])}, batch_size=[1]))
     assert third.storage["x"].tolist() == [8.0, 9.0, 10.0, 11.0, 4.0, 5.0, 6.0, 7.0]
+
+
+def test_identity_differences_name_each_part_of_a_run_that_differs():
+    from omegaconf import OmegaConf
+
+    cfg = OmegaConf.create({"task": {"name": "cliff_cheetah"}, "algo": {"name": "lnt"}, "seed": 2})
+    same = {"task": "cliff_cheetah", "algo": "lnt", "seed": 2, "arms": None, "frames": 500}
+    assert identity_differences(same, cfg) == {}
+    # a meta.json from before arms existed: one environment, as this run
+    assert identity_differences({k: v for k, v in same.items() if k != "arms"}, cfg) == {}
+    assert identity_differences({**same, "seed": 1, "arms": 4}, cfg) == {"seed": (1, 2), "arms": (4, None)}
+    assert identity_differences({"frames": 500}, OmegaConf.merge(cfg, {"arms": 3})) == {
+        "task": (None, "cliff_cheetah"), "algo": (None, "lnt"), "seed": (None, 2), "arms": (None, 3)}
