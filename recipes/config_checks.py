@@ -113,7 +113,9 @@ def validate(cfg: DictConfig) -> None:
             raise ConfigError(no_intact_checkpoint(checkpoints.root, damaged))
         if latest is None:
             raise ConfigError(f"resume=true but {checkpoints.root} holds no complete checkpoint to resume from.")
-        for key, (saved, value) in identity_differences(json.loads((latest / "meta.json").read_text()), cfg).items():
+        differ = identity_differences(json.loads((latest / "meta.json").read_text()), cfg)
+        if differ:
+            key, (saved, value) = next(iter(differ.items()))
             raise ConfigError(
                 f"the checkpoint in {latest} is from {key} {saved!r}, this run is {key} {value!r}; "
                 "use another run_dir or the matching task, algo, seed and arms."

@@ -12,7 +12,8 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 
 from agents import Agent, make_forward_agent, make_reset_agent
-from run_files import MANIFEST, CheckpointDamaged, Checkpoints, checkpoint_problems, checkpoint_step, identity_differences
+from run_files import (MANIFEST, CheckpointDamaged, Checkpoints, checkpoint_problems, checkpoint_step,
+                       identity_differences)
 from task_envs import task_dimensions
 
 __all__ = ["SavedRun", "load_agents"]
