@@ -10,7 +10,8 @@ at-initial-state check ``|x| < 0.1`` and ``|pitch| < 0.1``, up to 2 H_f steps), 
 and once with the run's Ornstein-Uhlenbeck noise (the noise starts at 0 here; in training it carries
 over). Each episode that ends without success is classed by its last state: **flipped** (|pitch| > pi/2:
 on its back, where a half-cheetah's torques cannot right it), **away** (upright but |x| >= 0.5) or
-**near** (upright within 0.5 m of the start, not still enough or not level enough for the check).
+**near** (upright within 0.5 m of the start, not still enough or not level enough for the check);
+with the sign of the end pitch (positive: nose down, the head below the torso).
 Also printed: the logged outcome of the very reset that followed each trigger (paired by its start),
 so that the replay can be compared with what happened in training (the policy has changed since),
 and the reset actor's output on the chosen states before its tanh (a saturated tanh passes no gradient).
@@ -133,7 +134,8 @@ def main(argv=None) -> None:
             ended = [r for r in rows if r[f"{name}_outcome"] == outcome]
             if ended:
                 print(f"        {outcome}: end x median {statistics.median(r[f'{name}_x'] for r in ended):.2f}, "
-                      f"end |pitch| median {statistics.median(abs(r[f'{name}_pitch']) for r in ended):.2f}")
+                      f"end |pitch| median {statistics.median(abs(r[f'{name}_pitch']) for r in ended):.2f}, "
+                      f"nose down (pitch > 0) {sum(r[f'{name}_pitch'] > 0 for r in ended)} of {len(ended)}")
     print("logged outcome of the reset that followed these triggers in training: "
           + ", ".join(f"{k} {sum(r['logged'] == k for r in rows)}" for k in ("success", "manual", "?")))
     for kind in ("success", "manual"):
