@@ -215,15 +215,18 @@ class Checkpoints:
         found = [(s, p) for p in (self.root / "kept").glob("step_*") if (s := checkpoint_step(p)) is not None]
         return [p for _, p in sorted(found) if (p / "state.pt").exists()]
 
-    def due_for_keeping(self, frames: int) -> bool:
+    def due_for_keeping(self, frames: int, kept_steps: list[int] | None = None) -> bool:
         """Whether a checkpoint at step ``frames`` keeps its state: the first checkpoint at or past each
         multiple of ``keep_states_every`` does (the multiple itself in a run on one env; with N arms an
-        iteration takes up to N steps and a checkpoint may land a few steps past it)."""
+        iteration takes up to N steps and a checkpoint may land a few steps past it). ``kept_steps``: the
+        steps of the kept states, where the caller has them (default: read from ``kept/``)."""
         every = self.keep_states_every
         if not every or frames < every:
             return False
         mark = frames // every * every
-        return not any(mark <= checkpoint_step(p) < frames for p in self.kept())
+        if kept_steps is None:
+            kept_steps = [checkpoint_step(p) for p in self.kept()]
+        return not any(mark <= s < frames for s in kept_steps)
 
     def _keep_due(self, frames: int) -> None:
         """Keeps the state of every checkpoint up to ``frames`` that is due and not kept yet, oldest first: the
@@ -233,12 +236,14 @@ class Checkpoints:
             return
         steps = sorted((s, path) for path in self.root.glob("step_*")
                        if (s := checkpoint_step(path)) is not None and s <= frames and path.name in self.trusted)
+        kept_steps = [checkpoint_step(p) for p in self.kept()]  # listed once, then followed as states are kept
         for s, path in steps:
             # a kept state is complete once its manifest is in place (written last); one at this step that
             # this process did not keep is another process's (the same state after a resume: kept again)
             done = (self.root / "kept" / path.name / MANIFEST).exists() and (s < frames or path.name in self._kept_here)
-            if not done and self.due_for_keeping(s):
+            if not done and self.due_for_keeping(s, kept_steps):
                 self._keep_state(path)
+                kept_steps.append(s)
 
     def _keep_state(self, folder: Path) -> None:
         """``folder``'s ``state.pt`` linked (copied where links are not possible) into ``kept/``, with its
