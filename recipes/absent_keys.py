@@ -20,6 +20,10 @@ ABSENT_KEYS = {
     "forward.sampling": "transition",      # the forward buffer uniform over steps (the release: episode first)
     "target_init": "copy",                 # every target a copy of its network (the release's draws: release)
     "algo.success_terminal": False,        # LNT's TD targets bootstrap through a successful reset (as the preset)
+    "reset.actor.head": "tanh",            # the reset actor: the release's deterministic tanh head ...
+    "reset.actor.preact_penalty": 0.0,     # ... with nothing added to its loss
+    "reset.actor.action_l2": 0.0,
+    "reset.actor.entropy": 0.0001,         # (read by the tanh_normal head only: RCE's fixed coefficient)
 }
 
 

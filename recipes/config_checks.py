@@ -11,6 +11,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from torchrl_reset.accel import MATMUL_PRECISIONS
 from absent_keys import setting
+from agents import ACTOR_HEADS
 from reset_agents import KINDS, reset_kind
 from run_files import Checkpoints, arm_count, identity_differences, no_intact_checkpoint
 from torchrl_reset_envs import TASKS
@@ -25,6 +26,29 @@ CONF = Path(__file__).resolve().parent / "conf"
 
 class ConfigError(ValueError):
     """A configuration that cannot run; raised before anything is built."""
+
+
+def actor_problems(cfg: DictConfig) -> list[str]:
+    """Problems with ``reset.actor.*``, the reset actor's head and the terms added to its loss."""
+    problems = []
+    head = setting(cfg, "reset.actor.head")
+    if head not in ACTOR_HEADS:
+        problems.append(f"reset.actor.head must be one of {', '.join(ACTOR_HEADS)}, got {head!r}")
+    for key in ("reset.actor.preact_penalty", "reset.actor.action_l2"):
+        value = setting(cfg, key)
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or value < 0:
+            problems.append(f"{key} must be a number >= 0, got {value!r}")
+    entropy = setting(cfg, "reset.actor.entropy")
+    if entropy != "auto" and (isinstance(entropy, bool) or not isinstance(entropy, (int, float)) or entropy <= 0):
+        problems.append(f"reset.actor.entropy must be a number > 0 or auto, got {entropy!r}")
+    if head == "tanh_normal" and setting(cfg, "update_order") != "release":
+        problems.append("reset.actor.head=tanh_normal needs update_order=release (its actor step samples actions; "
+                        "the classifiers' labels take its deterministic action tanh(loc))")
+    remedy = head != "tanh" or setting(cfg, "reset.actor.preact_penalty") or setting(cfg, "reset.actor.action_l2")
+    if remedy and (arm_count(cfg) is not None or OmegaConf.select(cfg, "seeds", default=None) is not None):
+        problems.append("reset.actor.* other than the release's tanh head runs in single runs only (not with seeds= "
+                        "or arms=); run seeds as a -m grid")
+    return problems
 
 
 def reset_horizon(cfg: DictConfig) -> int:
@@ -90,6 +114,7 @@ def validate(cfg: DictConfig) -> None:
         problems.append(f"target_init must be release or copy, got {target_init!r}")
     if not isinstance(setting(cfg, "exploration.clip"), bool):
         problems.append(f"exploration.clip must be true or false, got {OmegaConf.select(cfg, 'exploration.clip')!r}")
+    problems += actor_problems(cfg)
     if int(cfg.heat_up) < 0:
         problems.append(f"heat_up must be >= 0, got {cfg.heat_up}")
     arms = arm_count(cfg)

@@ -38,7 +38,7 @@ def make_collector(cfg: DictConfig, env, forward: Agent, reset: Agent) -> DualCo
     collector = loop(
         env,
         with_exploration(forward.actor, env.action_spec, cfg),
-        with_exploration(reset.actor, env.action_spec, cfg),
+        with_exploration(reset.actor, env.action_spec, cfg, reset.head),
         max_forward_steps=int(cfg.task.forward_horizon),   # H_f
         max_reset_steps=reset_horizon(cfg),                 # H_r
         min_reset_steps=int(cfg.reset.min_steps),

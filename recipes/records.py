@@ -21,7 +21,10 @@ from tqdm import tqdm
 
 from buffers import fallback_counts, restore_fallbacks
 from reset_agents import reset_kind
+from absent_keys import setting
+from agents import normalised_action
 from diagnostics import DIAGNOSTIC_FIELDS, RESET_FIELDS, ResetDistances, TriggerScores, probe_classifier
+from torchrl_reset.actor_heads import saturation
 from run_files import CsvTable, code_version, processor_name, reset_outcomes_by_quarter
 from task_envs import safety_counters
 
@@ -35,6 +38,9 @@ PROGRESS_FIELDS = [
     "eval_return", "average_return", "steps_per_second", "loss_forward_actor", "loss_forward_critic",
     "loss_reset_actor", "loss_reset_critic", "skipped_updates", "protective_stops",
     "irrecoverable_forward", "irrecoverable_reset",
+    # the policies' saturation over the log window: the share of their noiseless action components beyond 0.99 of
+    # the bound (normalised coordinates) on the steps they took, and the mean |pre-activation| (the tanh's input)
+    "forward_saturation", "forward_preact_abs", "reset_saturation", "reset_preact_abs",
 ]
 EVAL_FIELDS = ["frames", "forward_return", "forward_steps", "triggered", "reset_success", "reset_steps"]
 TRIGGER_FIELDS = ["frames", "steps", "value", "irrecoverable", "observation"]
@@ -73,6 +79,9 @@ class RunRecord:
         self.history = {"eval_returns": [], "last_losses": {}, "elapsed": 0.0}
         self.curriculum_index = int(cfg.task.curriculum.index)
         self.heat_up = int(cfg.heat_up)
+        self.heads = {"forward": "tanh", "reset": setting(cfg, "reset.actor.head")}
+        self.window = Saturation.empty()  # this log window's counts, per phase
+        self.last_window = {}  # the last log row's saturation entries
 
     @property
     def tables(self) -> tuple[CsvTable, ...]:
@@ -109,6 +118,8 @@ class RunRecord:
         # how often the system entered an irrecoverable state (the env's latched "irrecoverable" flag turned
         # on: the cliff tasks' ditch) in a forward and in a reset step; how the last forward episode ended
         self.irrecoverable = self.history.setdefault("irrecoverable", {"forward": 0, "reset": 0})
+        # the saturation counts of the run's last quarter (the summary's)
+        self.late_saturation = self.history.setdefault("late_saturation", Saturation.empty())
         self.history.setdefault("last_forward_end", "")
         self.bar = tqdm(total=int(self.cfg.total_steps), initial=self.collector.frames,
                         desc=f"{self.cfg.task.name}/{self.cfg.algo.name}", unit="step", mininterval=2.0,
@@ -130,6 +141,12 @@ class RunRecord:
             self.step_time[phase][1] += batch.numel()
         self._last = now
         self.bar.update(batch.numel())
+        preactivation = batch.get("action_preactivation", None)
+        if preactivation is not None:
+            counts = saturation(normalised_action(preactivation, self.heads[phase]), preactivation)
+            Saturation.add(self.window[phase], counts)
+            if self.collector.frames > 0.75 * int(self.cfg.total_steps):
+                Saturation.add(self.late_saturation[phase], counts)
         before, after = _flags(batch)
         if after is not None:
             self.irrecoverable[phase] += int((after & ~before).sum())
@@ -166,7 +183,10 @@ class RunRecord:
             "steps_per_second": frames / max(self.history["elapsed"], 1e-9), "skipped_updates": learner.budget.skipped,
             **self.history["last_losses"], "protective_stops": safety_counters(env).get("protective_stops", 0),
             "irrecoverable_forward": self.irrecoverable["forward"], "irrecoverable_reset": self.irrecoverable["reset"],
+            **Saturation.fields(self.window),
         }
+        self.last_window = Saturation.fields(self.window)
+        self.window = Saturation.empty()
         self.progress.append(row)
         reset_rb = learner.reset_rb
         counts = fallback_counts(reset_rb)
@@ -216,6 +236,8 @@ class RunRecord:
             "safety": safety_counters(env),
             # entries into an irrecoverable state (over the cliff, into the ditch), in forward and in reset steps
             "irrecoverable": dict(self.irrecoverable),
+            # the policies' saturation (progress.csv's columns) over the last log window and the last quarter
+            "saturation": {"last_window": self.last_window, "last_quarter": Saturation.fields(self.late_saturation)},
             "seconds": round(history["elapsed"], 1),
             "steps_per_second": round(collector.frames / max(history["elapsed"], 1e-9), 1),
             "step_seconds": {name: (total / count if count else None) for name, (total, count) in self.step_time.items()},
@@ -231,6 +253,28 @@ class RunRecord:
             if callable(finish):  # wandb: close the run so its files are complete
                 finish()
         return summary
+
+
+class Saturation:
+    """Counts of the policies' saturation per phase: ``[saturated components, components, sum |u|]``."""
+
+    @staticmethod
+    def empty() -> dict:
+        return {"forward": [0, 0, 0.0], "reset": [0, 0, 0.0]}
+
+    @staticmethod
+    def add(counts: list, new: tuple) -> None:
+        for i, value in enumerate(new):
+            counts[i] += value
+
+    @staticmethod
+    def fields(window: dict) -> dict:
+        """``<phase>_saturation`` and ``<phase>_preact_abs`` (NaN where the phase took no step)."""
+        out = {}
+        for phase, (saturated, components, total) in window.items():
+            out[f"{phase}_saturation"] = saturated / components if components else float("nan")
+            out[f"{phase}_preact_abs"] = total / components if components else float("nan")
+        return out
 
 
 def _quarter_rates(quarters: dict) -> dict:

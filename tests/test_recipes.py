@@ -848,4 +848,6 @@ def test_the_summary_names_what_decides_the_float_rounding(tmp_path):
         saved = train.train(config(tmp_path, "task=ball_in_cup_catch", "total_steps=60", "threads=1"))
     finally:
         torch.set_num_threads(before)
-    assert saved["torch_threads"] == 1 and saved["matmul_precision"] == "ieee" and saved["processor"]
+    # the product precision is the one this processor's check chose (auto: bf16 only where it measures as accurate)
+    assert saved["torch_threads"] == 1 and saved["processor"]
+    assert saved["matmul_precision"] == accel.choose_matmul_precision("auto")

@@ -1,0 +1,169 @@
+"""The reset actor's remedies for a saturating tanh (torchrl_reset.actor_heads and reset.actor.*): every value
+below is worked out by hand from the formulas in the docstrings."""
+from __future__ import annotations
+
+import csv
+import json
+import math
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+from hydra import compose, initialize_config_dir
+from tensordict import TensorDict
+from torchrl.data import Bounded
+from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+from torchrl_reset.actor_heads import (EntropyBonus, InvertingGradientHead, InvertingGradients, actor_penalties,
+                                       saturation)
+
+RECIPES = Path(__file__).resolve().parents[1] / "recipes"
+sys.path.insert(0, str(RECIPES))
+
+import train  # noqa: E402
+from agents import ActorTerms, make_actor, normalised_action  # noqa: E402
+from config_checks import ConfigError, validate  # noqa: E402
+from records import Saturation  # noqa: E402
+
+
+def test_inverting_gradients_scale_by_the_distance_to_the_bound_pushed_towards():
+    u = torch.tensor([0.5, -0.5, 1.5], requires_grad=True)
+    a = InvertingGradients.apply(u)
+    assert a.tolist() == [0.5, -0.5, 1.0]  # clipped forward
+    # a loss falling as a grows (dL/da = -1, a push up): factors (1 - u) / 2 = 0.25, 0.75, -0.25
+    (-a.sum()).backward()
+    assert u.grad.tolist() == pytest.approx([-0.25, -0.75, 0.25])
+    # beyond the bound the factor is negative: a descent step moves u = 1.5 down, back towards the box
+    u.grad = None
+    a = InvertingGradients.apply(u)
+    a.sum().backward()  # dL/da = +1, a push down: factors (u + 1) / 2 = 0.75, 0.25, 1.25
+    assert u.grad.tolist() == pytest.approx([0.75, 0.25, 1.25])
+
+
+def test_the_inverting_head_maps_normalised_outputs_onto_the_box():
+    head = InvertingGradientHead(low=torch.tensor([-2.0, 0.0]), high=torch.tensor([2.0, 1.0]))
+    u = torch.tensor([[0.5, -0.5], [-3.0, 0.2]], requires_grad=True)
+    td = head(TensorDict(action_preactivation=u, batch_size=[2]))
+    # mid + half * clamp(u): (0 + 2 * 0.5, 0.5 + 0.5 * -0.5), (0 + 2 * -1, 0.5 + 0.5 * 0.2)
+    assert td["action"].flatten().tolist() == pytest.approx([1.0, 0.25, -2.0, 0.6])
+    td["action"].sum().backward()  # pushes down everywhere: half * (u + 1) / 2
+    assert u.grad.flatten().tolist() == pytest.approx([2 * 0.75, 0.5 * 0.25, 2 * -1.0, 0.5 * 0.6])
+    with pytest.raises(ValueError, match="high bound must exceed"):
+        InvertingGradientHead(low=torch.tensor([1.0]), high=torch.tensor([1.0]))
+
+
+def test_penalties_are_the_mean_squares_and_their_gradient_pulls_towards_zero():
+    u = torch.tensor([[1.0, 2.0], [3.0, 0.0]], requires_grad=True)
+    a = torch.tanh(u)
+    value = actor_penalties(u, a, preact_penalty=0.1)
+    assert float(value) == pytest.approx(0.1 * (1 + 4 + 9 + 0) / 4)
+    value.backward()
+    assert u.grad.flatten().tolist() == pytest.approx([0.05, 0.1, 0.15, 0.0])  # 2 c u / 4
+    assert float(actor_penalties(u, torch.tensor([[0.5, -1.0]]), action_l2=2.0)) == pytest.approx(2.0 * 1.25 / 2)
+    assert float(actor_penalties(u, a)) == 0.0
+
+
+def test_entropy_bonus_fixed_and_learned_temperature():
+    fixed = EntropyBonus(alpha=1e-4)
+    log_prob = torch.tensor([-1.0, -3.0])
+    assert float(fixed(log_prob)) == pytest.approx(1e-4 * -2.0)
+    assert not list(fixed.parameters())  # a fixed alpha is no parameter
+    learned = EntropyBonus(alpha=0.5, target_entropy=-2.0)
+    value = learned(log_prob)
+    # alpha * mean(log pi) - log(alpha) * mean(log pi + target) = 0.5 * -2 - log(0.5) * (-4)
+    assert float(value) == pytest.approx(-1.0 + 4 * math.log(0.5))
+    value.backward()
+    # d/d log_alpha = -mean(log pi + target) = 4 > 0: the entropy (2) is above the target (-2), alpha goes down
+    assert float(learned.log_alpha.grad) == pytest.approx(4.0)
+    with pytest.raises(ValueError, match="alpha must be positive"):
+        EntropyBonus(alpha=0.0)
+
+
+def test_saturation_counts_components_beyond_099_of_the_bound():
+    u = torch.tensor([[3.0, 0.1], [-2.0, -4.0]])
+    a = torch.tanh(u)  # tanh(3) = 0.9951, tanh(2) = 0.9640, tanh(4) = 0.9993
+    assert saturation(a, u) == (2, 4, pytest.approx(9.1))
+    window = Saturation.empty()
+    Saturation.add(window["reset"], saturation(a, u))
+    fields = Saturation.fields(window)
+    assert fields["reset_saturation"] == 0.5 and fields["reset_preact_abs"] == pytest.approx(9.1 / 4)
+    assert math.isnan(fields["forward_saturation"])  # no forward step in this window
+    # the inverting head's normalised action is its clipped output
+    assert normalised_action(torch.tensor([1.5, -0.2]), "inverting").tolist() == pytest.approx([1.0, -0.2])
+
+
+def _spec(low=-1.0, high=1.0):
+    return Bounded(torch.full((2,), low), torch.full((2,), high), shape=(2,))
+
+
+def test_the_tanh_normal_head_samples_when_exploring_and_acts_tanh_loc_otherwise():
+    torch.manual_seed(0)
+    actor = make_actor(3, _spec(0.0, 2.0), [8], head="tanh_normal")
+    td = TensorDict(observation=torch.randn(4000, 3), batch_size=[4000])
+    plain = actor(td.clone())
+    # the deterministic action: tanh(loc) onto [0, 2], i.e. 1 + tanh(loc)
+    assert torch.allclose(plain["action"], 1.0 + torch.tanh(plain["action_preactivation"]), atol=1e-6)
+    with set_exploration_type(ExplorationType.RANDOM):
+        drawn = actor(td.clone())
+    assert not torch.allclose(drawn["action"], plain["action"])
+    assert bool(((drawn["action"] > 0) & (drawn["action"] < 2)).all())
+    # a sample's log-density is the Gaussian's minus log|d a / d x| = log(1 - tanh(x)^2) (the box's half-width is 1)
+    x = torch.atanh((drawn["action"] - 1.0).clamp(-1 + 1e-6, 1 - 1e-6))
+    loc, scale = drawn["action_preactivation"], drawn["action_scale"]
+    gauss = torch.distributions.Normal(loc, scale).log_prob(x) - torch.log1p(-torch.tanh(x).pow(2))
+    close = (x.abs() < 3).all(-1)  # away from the float edge of the box
+    assert torch.allclose(drawn["action_log_prob"][close], gauss.sum(-1)[close], atol=1e-3)
+
+
+def test_actor_terms_add_the_penalty_on_the_actors_own_preactivation():
+    torch.manual_seed(0)
+    actor = make_actor(3, _spec(), [8], head="tanh")
+    terms = ActorTerms(actor, "tanh", preact_penalty=0.5, action_l2=0.0, entropy=None)
+    sample = TensorDict(observation=torch.randn(16, 3), batch_size=[16])
+    u = actor(sample.clone())["action_preactivation"]
+    assert float(terms(sample)) == pytest.approx(0.5 * float(u.pow(2).mean()), rel=1e-6)
+
+
+RUN = ["preset=quick", "task=ball_in_cup_catch", "hidden_sizes=[16,16]", "heat_up=40", "task.forward_horizon=20",
+       "reset.batch_size=16", "forward.batch_size=16", "eval_every=100", "log_every=50", "checkpoint_every=100",
+       "progress_bar=false", "total_steps=200"]
+
+
+def _config(tmp_path, *overrides):
+    with initialize_config_dir(config_dir=str(RECIPES / "conf"), version_base="1.3"):
+        return compose(config_name="config", overrides=[*RUN, f"run_dir={tmp_path}", *overrides])
+
+
+@pytest.mark.parametrize("algo", ["ours", "lnt"])
+@pytest.mark.parametrize("remedy", [["reset.actor.head=inverting"], ["reset.actor.preact_penalty=0.01"],
+                                    ["reset.actor.head=tanh_normal", "reset.actor.entropy=auto"]])
+def test_each_remedy_trains_and_every_run_logs_saturation(tmp_path, algo, remedy):
+    summary = train.train(_config(tmp_path, f"algo={algo}", *remedy))
+    assert summary["finished"]
+    with open(tmp_path / "progress.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    before = {"forward": 0, "reset": 0}
+    for row in rows:  # a value in [0, 1] for a window in which the phase took steps, NaN for one without
+        for phase in before:
+            took, value = int(row[f"{phase}_steps"]) - before[phase], float(row[f"{phase}_saturation"])
+            assert (0.0 <= value <= 1.0 and float(row[f"{phase}_preact_abs"]) >= 0.0) if took else math.isnan(value)
+            before[phase] = int(row[f"{phase}_steps"])
+    assert before["reset"] > 0
+    saved = json.loads((tmp_path / "summary.json").read_text())["saturation"]
+    assert set(saved) == {"last_window", "last_quarter"} and "reset_saturation" in saved["last_quarter"]
+    if "reset.actor.entropy=auto" in remedy:  # the temperature is learned, saved with the loss
+        state = torch.load(next((tmp_path / "checkpoints").glob("step_*/state.pt")), weights_only=False)
+        assert "entropy_bonus.log_alpha" in state["reset_loss"]
+        assert state["reset_loss"]["entropy_bonus.log_alpha"] != pytest.approx(math.log(0.01))
+
+
+@pytest.mark.parametrize("overrides, message", [
+    (["reset.actor.head=sigmoid"], "reset.actor.head must be one of"),
+    (["reset.actor.preact_penalty=-1"], "preact_penalty must be a number >= 0"),
+    (["reset.actor.entropy=0"], "entropy must be a number > 0 or auto"),
+    (["reset.actor.head=tanh_normal", "update_order=joint"], "needs update_order=release"),
+])
+def test_bad_actor_settings_are_refused(tmp_path, overrides, message):
+    with pytest.raises(ConfigError, match=message):
+        validate(_config(tmp_path, *overrides))
