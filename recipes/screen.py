@@ -211,8 +211,11 @@ def main(argv=None) -> None:
     table.add_argument("root", type=Path, help="the folder holding <name>/seed<k>/ run folders")
     table.add_argument("--out", type=Path, default=None, help="where screening.md and screening.png go (default: root)")
     table.add_argument("--order", default=None, help="the configurations' order, comma-separated (default: by name)")
-    args = parser.parse_args(argv)
+    argv = list(sys.argv[1:] if argv is None else argv)
+    extra = argv[argv.index("--") + 1:] if "--" in argv else []  # the recipe's overrides, after --
+    args = parser.parse_args(argv[:argv.index("--")] if "--" in argv else argv)
     if args.command == "run":
+        args.overrides = [*args.overrides, *extra]
         if args.jobs < 1:
             parser.error("--jobs must be at least 1")
         command = grid_command(args.name, seed_list(args.seeds), args.overrides, args.root, args.jobs)

@@ -31,6 +31,15 @@ def test_the_grid_is_one_hydra_multirun_with_one_thread_per_run_and_resume_auto(
         screen.grid_command("a/b", [0], [], "runs", 1)
 
 
+def test_run_takes_the_recipes_overrides_after_a_double_dash(monkeypatch):
+    called = []
+    monkeypatch.setattr(screen.subprocess, "call", lambda command: called.append(command) or 0)
+    with pytest.raises(SystemExit) as stop:
+        screen.main(["run", "clip", "--seeds", "3-4", "--jobs", "1", "--", "preset=quick", "exploration.clip=true"])
+    assert stop.value.code == 0
+    assert {"preset=quick", "exploration.clip=true", "seed=3,4", "hydra.launcher.n_jobs=1"} <= set(called[0])
+
+
 def test_the_interval_brackets_the_mean_and_needs_three_values():
     mean, low, high = screen.bootstrap_interval([1.0, 2.0, 3.0, 4.0, 10.0])
     assert mean == pytest.approx(4.0) and low < 4.0 < high
