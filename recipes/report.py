@@ -49,6 +49,8 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
+from screen import bootstrap_interval  # noqa: E402
+
 #: The paper's Table 1 (1.5M steps, mean of 5 seeds): return, manual resets, forward share, success rate.
 PAPER_TABLE1 = {
     ("ball_in_cup_catch", "lnt"): (10.38, 276, 0.857, 0.993),
@@ -346,21 +348,26 @@ def find_runs(paths: list[Path], budget: int | None = None, names: dict[Path, st
     return runs
 
 
-def _mean_std(values: list[float]) -> tuple[float, float]:
+def _mean_std(values: list[float]) -> tuple[float, float, float, float]:
+    """Mean, population standard deviation and, over three or more values, the mean's bootstrap 95% interval
+    (``screen.bootstrap_interval``; NaN below three)."""
     values = [v for v in values if v is not None and not (isinstance(v, float) and math.isnan(v))]
     if not values:
-        return math.nan, math.nan
-    return float(np.mean(values)), float(np.std(values)) if len(values) > 1 else 0.0
+        return math.nan, math.nan, math.nan, math.nan
+    _, low, high = bootstrap_interval(values)
+    return float(np.mean(values)), float(np.std(values)) if len(values) > 1 else 0.0, low, high
 
 
-def _cell(mean: float, std: float, kind: str) -> str:
+def _cell(mean: float, std: float, low: float = math.nan, high: float = math.nan, *, kind: str) -> str:
     if math.isnan(mean):
         return "n/a"
     if kind == "share":
-        return f"{100 * mean:.1f}% ± {100 * std:.1f}"
-    if kind == "count":
-        return f"{mean:.0f} ± {std:.0f}"
-    return f"{mean:.2f} ± {std:.2f}"
+        text, interval = f"{100 * mean:.1f}% ± {100 * std:.1f}", f" [{100 * low:.1f}, {100 * high:.1f}]"
+    elif kind == "count":
+        text, interval = f"{mean:.0f} ± {std:.0f}", f" [{low:.0f}, {high:.0f}]"
+    else:
+        text, interval = f"{mean:.2f} ± {std:.2f}", f" [{low:.2f}, {high:.2f}]"
+    return text if math.isnan(low) else text + interval
 
 
 def _paper(value, kind: str) -> str:
@@ -401,8 +408,7 @@ def table1(runs: list[RunFolder]) -> str:
         paper = PAPER_TABLE1.get((task, algo)) if _is_paper_setting(setting) else None
         cells = []
         for metric, kind, index in zip(METRICS, kinds, range(4)):
-            mean, std = _mean_std([r.summary[metric] for r in members])
-            cell = _cell(mean, std, kind)
+            cell = _cell(*_mean_std([r.summary[metric] for r in members]), kind=kind)
             if paper is not None:
                 cell += f" (paper {_paper(paper[index], kind)})"
             cells.append(cell)
@@ -417,7 +423,9 @@ def table1(runs: list[RunFolder]) -> str:
     note = f" at a budget of {budget.pop()} steps" if budget else ""
     lines += [
         "",
-        f"Mean ± standard deviation over seeds (population form: divided by the number of seeds){note}; the paper's numbers are 1.5M-step means of 5 seeds.",
+        f"Mean ± standard deviation over seeds (population form: divided by the number of seeds){note}, and over three "
+        "or more seeds the mean's bootstrap 95% interval in brackets (BCa, 10,000 resamples); the paper's numbers "
+        "are 1.5M-step means of 5 seeds.",
     ]
     named = named_settings(runs)
     if named:
@@ -444,8 +452,8 @@ def table1(runs: list[RunFolder]) -> str:
         saved_by_steps = _mean_std([r.summary["baseline_hard_resets"] - r.summary["manual_resets"] for r in members])
         lines.append(
             f"| {TASK_TITLES.get(task, task)} | {_title(algo, setting)} | {p_thresh} | {len(members)} | "
-            f"{_cell(*manual, 'count')} | {_cell(*episodic, 'count')} | {_cell(*saved, 'count')} | "
-            f"{_cell(*by_steps, 'count')} | {_cell(*saved_by_steps, 'count')} | {_cell(*late, 'return')} |"
+            f"{_cell(*manual, kind='count')} | {_cell(*episodic, kind='count')} | {_cell(*saved, kind='count')} | "
+            f"{_cell(*by_steps, kind='count')} | {_cell(*saved_by_steps, kind='count')} | {_cell(*late, kind='return')} |"
         )
     return "\n".join(lines) + (
         "\n\nEpisodic resets: the resets an agent without a reset agent would have needed, one per forward "
@@ -662,7 +670,7 @@ def figure4(runs: list[RunFolder], out: Path) -> list[Path]:
         fig, axes = plt.subplots(1, 4, figsize=(14, 3.4))
         for ax, metric in zip(axes, METRICS):
             stats = [_mean_std([r.summary[metric] for r in members if r.p_thresh == p]) for p in thresholds]
-            ax.errorbar(thresholds, [m for m, _ in stats], yerr=[s for _, s in stats], marker="o", capsize=3,
+            ax.errorbar(thresholds, [m for m, *_ in stats], yerr=[s for _, s, *_ in stats], marker="o", capsize=3,
                         color=COLORS.get(algo))
             ax.set(xlabel="p_thresh", title=metric.replace("_", " "))
             ax.grid(alpha=0.3)
@@ -819,7 +827,8 @@ def diagnostics_figure(task: str, algo: str, setting: str, members: list[RunFold
     probes = [probe for probe in PROBE_SERIES if ours or probe[0] != "forward_p_min_member"]
     progress = [run.table("progress.csv") for run in runs]
     stretch = _stretch(progress)
-    fig, axes = plt.subplots(1, 4, figsize=(18, 4.8), layout="constrained")
+    saturation = any("reset_saturation" in prog for prog in progress)  # runs that logged it (every run since it exists)
+    fig, axes = plt.subplots(1, 5 if saturation else 4, figsize=(22.5 if saturation else 18, 4.8), layout="constrained")
     colors, labels = _run_colors(len(runs)), _run_labels(runs)
     outcomes_seen = []
     for (run, t), color, label, prog in zip(tables, colors, labels, progress):
@@ -832,6 +841,10 @@ def diagnostics_figure(task: str, algo: str, setting: str, members: list[RunFold
         if "successful_resets" in prog and "manual_resets" in prog and len(prog["frames"]) > 1:
             rate = success_rate_per_stretch(prog["frames"], prog["successful_resets"], prog["manual_resets"], stretch)
             axes[2].plot(prog["frames"], rate, color=color, label=label)
+        if saturation:
+            for column, style, actor in (("reset_saturation", "-", "reset"), ("forward_saturation", ":", "forward")):
+                if column in prog:
+                    axes[4].plot(prog["frames"], 100 * prog[column], color=color, ls=style, label=f"{label}: {actor}")
         resets = run.table("resets.csv", text=("outcome",))
         if "distance_to_start" in resets:
             outcome = resets.get("outcome", np.full(len(resets["frames"]), "?"))
@@ -868,6 +881,10 @@ def diagnostics_figure(task: str, algo: str, setting: str, members: list[RunFold
     def key(style="-", marker=None, label=""):  # a legend entry for a line style or marker, in no run's colour
         return Line2D([], [], color="0.3", ls=style, marker=marker, label=label)
 
+    if saturation:
+        axes[4].set(title="saturation: action components beyond 0.99 of the bound", xlabel="steps",
+                    ylabel=f"% of the noiseless action's components, per {per_row}steps", ylim=(-2, 102))
+
     legends = [
         [key("-", label=f"mean over each {per_row}steps"), key(":", label=f"lowest in each {per_row}steps"),
          *threshold_lines],
@@ -875,6 +892,7 @@ def diagnostics_figure(task: str, algo: str, setting: str, members: list[RunFold
         + threshold_lines,
         [],
         [key("none", OUTCOME_MARKERS.get(kind, "^"), kind) for kind in outcomes_seen] + bound_lines,
+        [key("-", label="reset actor"), key(":", label="forward actor")],
     ]
     for ax, handles in zip(axes, legends):
         ax.grid(alpha=0.3)

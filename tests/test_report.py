@@ -501,3 +501,28 @@ def test_fig5_of_a_cliff_task_draws_the_edge_and_marks_the_triggers_that_came_to
     fig = report.fig5_figure("peg_insertion_insert", "ours", "", report.find_runs([runs / "peg_insertion_insert"]))
     assert len(fig.axes[0].collections) == 1 and "cliff edge (x = 14)" not in _lines(fig.axes[0])
     report.plt.close(fig)
+
+
+def test_three_or_more_seeds_get_the_means_bootstrap_interval(tmp_path):
+    runs = tmp_path / "runs"
+    for seed, manual in enumerate((10, 20, 30, 40)):
+        fabricate(runs, "cliff_cheetah", "lnt", seed, 0.05, 1.0, manual, 0.3, 0.9)
+    table = report.table1(report.find_runs([runs]))
+    # manual 10, 20, 30, 40: mean 25, population std 11.18; a bootstrap mean of these lies within [10, 40]
+    cell = next(line for line in table.splitlines() if line.startswith("| cliff-cheetah | LNT |")).split(" | ")[6]
+    assert cell.startswith("25 ± 11 [") and cell.endswith("] (paper 835)")
+    low, high = (float(v) for v in cell[cell.index("[") + 1:cell.index("]")].split(", "))
+    assert 10 <= low < 25 < high <= 40
+
+
+def test_the_diagnostics_figure_plots_each_runs_saturation_when_logged(tmp_path):
+    runs = tmp_path / "runs"
+    progress = (["frames", "successful_resets", "manual_resets", "reset_saturation", "forward_saturation"],
+                [(1000, 0, 1, 0.25, 0.0), (2000, 1, 1, 0.5, 0.1)])
+    write_run(runs, "ours", 0, steps=2000, diagnostics=_diagnostics(0.0), resets=_resets(), progress=progress)
+    fig = report.diagnostics_figure("peg_insertion_insert", "ours", "", report.find_runs([runs]))
+    assert len(fig.axes) == 5
+    lines = _lines(fig.axes[4])
+    assert list(lines["seed 0: reset"].get_ydata()) == [25.0, 50.0]  # in percent
+    assert list(lines["seed 0: forward"].get_ydata()) == [0.0, 10.0]
+    report.plt.close(fig)
