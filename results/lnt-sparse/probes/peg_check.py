@@ -1,0 +1,111 @@
+"""How loose is peg-insertion (insert)'s at-initial-state check, ``d_start < 0.2``?
+
+LNT-sparse's reward is this check (1 where it holds, else 0). The more of the states the agents visit pass
+it, the denser that "sparse" reward is. This probe measures, on the task's own model:
+
+1. the check's size against the task: ``d_start`` (the 6-vector distance of the peg's two ends from their
+   start positions) between the start and the goal, and the share of uniformly drawn joint positions (within
+   the joints' ranges, at rest) that pass it;
+2. what exploration alone does from the start: ``--episodes`` forward episodes of H_f = 100 steps from the
+   start under (a) the recipe's Ornstein-Uhlenbeck noise around a zero policy (theta 0.15, sigma 0.2,
+   dt 0.05), (b) uniform random actions, (c) a saturated policy holding one corner of the action box:
+   the share of their end states that pass the check (a reset from there is over after the 5 minimum steps)
+   and how far they get;
+3. the trigger states of committed 100k runs (``--runs``, folders with ``triggers.csv``): the share already
+   inside the check.
+
+    python results/lnt-sparse/probes/peg_check.py --episodes 50 \\
+        --runs results/100000-release/peg_insertion_insert/*/seed*
+"""
+from __future__ import annotations
+
+import argparse
+import csv
+from pathlib import Path
+
+import mujoco
+import numpy as np
+
+from torchrl_reset_envs import PegInsertionEnv
+from torchrl_reset_envs.peg import PEG_GOAL, PEG_START, _RANGES
+
+CHECK = 0.2  # insert task: at the initial state when d_start < 0.2
+
+
+def ou_actions(rng, steps: int, dim: int, theta=0.15, sigma=0.2, dt=0.05) -> np.ndarray:
+    """The recipe's Ornstein-Uhlenbeck noise from zero (torchrl's form: x += theta (0 - x) dt + sigma sqrt(dt) N)."""
+    x, out = np.zeros(dim), []
+    for _ in range(steps):
+        x = x - theta * x * dt + sigma * np.sqrt(dt) * rng.standard_normal(dim)
+        out.append(x.copy())
+    return np.array(out)
+
+
+def rollout(env: PegInsertionEnv, actions: np.ndarray) -> tuple[float, float, float]:
+    """From the start: (d_start at the end, the largest d_start, the share of steps inside the check)."""
+    env.reset()
+    d, inside = [], 0
+    for action in actions:
+        env.step(np.clip(action, -1.0, 1.0))
+        d.append(env.d_start())
+        inside += d[-1] < CHECK
+    return d[-1], max(d), inside / len(actions)
+
+
+def at_rest(env: PegInsertionEnv, qpos) -> float:
+    """d_start with the arm at joint positions ``qpos`` (kinematics only)."""
+    env.data.qpos[env._qadr] = qpos
+    env.data.qvel[:] = 0.0
+    mujoco.mj_forward(env.model, env.data)
+    return env.d_start()
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter,
+                                     epilog=__doc__.split("\n\n", 1)[1])
+    parser.add_argument("--episodes", type=int, default=50, help="episodes per exploration kind (default 50)")
+    parser.add_argument("--samples", type=int, default=20000, help="joint positions drawn for part 1 (default 20,000)")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--runs", type=Path, nargs="*", default=[], help="run folders with triggers.csv (part 3)")
+    args = parser.parse_args(argv)
+    rng = np.random.default_rng(args.seed)
+    env = PegInsertionEnv("insert")
+    env.reset(seed=args.seed)
+
+    print("1. the check against the task")
+    print(f"   d_start between the start and the goal: {np.linalg.norm(PEG_GOAL - PEG_START):.3f} (the check: < {CHECK})")
+    low, high = np.array([r[0] for r in _RANGES]), np.array([r[1] for r in _RANGES])
+    draws = [at_rest(env, rng.uniform(low, high)) for _ in range(args.samples)]
+    print(f"   joint positions drawn uniformly in the joints' ranges: {np.mean(np.array(draws) < CHECK):.2%} pass "
+          f"({args.samples} draws; median d_start {np.median(draws):.2f})")
+
+    print(f"2. exploration from the start, {args.episodes} forward episodes of 100 steps each")
+    kinds = {
+        "OU noise around a zero policy": lambda: ou_actions(rng, 100, 7),
+        "uniform random actions": lambda: rng.uniform(-1, 1, (100, 7)),
+        "one corner of the action box held": lambda: np.tile(rng.choice([-1.0, 1.0], 7), (100, 1)),
+    }
+    for name, draw in kinds.items():
+        results = np.array([rollout(env, draw()) for _ in range(args.episodes)])
+        print(f"   {name}: end inside the check {np.mean(results[:, 0] < CHECK):.0%}; end d_start median "
+              f"{np.median(results[:, 0]):.2f} (max {results[:, 0].max():.2f}); farthest in the episode median "
+              f"{np.median(results[:, 1]):.2f}; steps inside the check {results[:, 2].mean():.0%}")
+
+    if args.runs:
+        print("3. trigger states of the runs (the forward episode's state the trigger stopped)")
+    for folder in args.runs:
+        path = folder / "triggers.csv"
+        if not path.exists():
+            continue
+        with open(path, newline="") as f:
+            states = [np.array(r["observation"].split(), dtype=float) for r in csv.DictReader(f)]
+        if not states:
+            print(f"   {folder}: no trigger")
+            continue
+        d = np.array([at_rest(env, s[:7]) for s in states])
+        print(f"   {folder}: {len(d)} triggers, {np.mean(d < CHECK):.0%} already inside the check; "
+              f"d_start median {np.median(d):.2f}")
+
+
+if __name__ == "__main__":
+    main()
