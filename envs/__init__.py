@@ -9,7 +9,6 @@ imports this package first, so it needs no prior import. :func:`make_env` builds
 """
 from ._mujoco import MujocoResetEnv, RenderingUnavailableError, tolerance
 from .ball_in_cup import BallInCupEnv
-from .batched import BatchedTaskEnv
 from .chain import ChainEnv
 from .cliff import CliffCheetahEnv, CliffWalkerEnv
 from .peg import PegInsertionEnv
@@ -21,7 +20,6 @@ register_gym_envs()
 
 __all__ = [
     "BallInCupEnv",
-    "BatchedTaskEnv",
     "ChainEnv",
     "CliffCheetahEnv",
     "CliffWalkerEnv",

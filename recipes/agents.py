@@ -18,7 +18,6 @@ from torchrl.objectives import SoftUpdate
 from absent_keys import ABSENT_KEYS, setting
 from torchrl_reset import ResetTriggerTransform, accel
 from torchrl_reset.actor_heads import EntropyBonus, InvertingGradientHead, actor_penalties
-from torchrl_reset.many import RowResetTriggerTransform
 
 from reset_agents import reset_kind
 
@@ -230,12 +229,7 @@ def reset_tau(cfg: DictConfig) -> float:
     return float(cfg.tau if tau is None else tau)
 
 
-def make_trigger(cfg: DictConfig, reset_agent: Agent, *, model=None, threshold=None,
-                 rows: bool = False) -> ResetTriggerTransform:
-    """The reset trigger on ``reset_agent``'s model (or ``model``: a batch's runs as one, with ``threshold``
-    one per row where they differ). ``rows``: the trigger of an env of N copies each in its own phase
-    (:class:`~torchrl_reset.many.RowResetTriggerTransform`, for ``arms=`` and a batch's batched acting)."""
+def make_trigger(cfg: DictConfig, reset_agent: Agent) -> ResetTriggerTransform:
+    """The reset trigger on ``reset_agent``'s model, at the threshold of the run's reset agent kind."""
     kind = reset_kind(cfg)
-    return kind.trigger(reset_agent.model if model is None else model,
-                        kind.threshold(cfg) if threshold is None else threshold,
-                        RowResetTriggerTransform if rows else ResetTriggerTransform)
+    return kind.trigger(reset_agent.model, kind.threshold(cfg))

@@ -13,15 +13,21 @@ from torchrl_reset.accel import MATMUL_PRECISIONS
 from absent_keys import setting
 from agents import ACTOR_HEADS
 from reset_agents import KINDS, reset_kind
-from run_files import Checkpoints, arm_count, identity_differences, no_intact_checkpoint
+from run_files import Checkpoints, identity_differences, no_intact_checkpoint
 from torchrl_reset_envs import TASKS
 
 __all__ = ["ALGOS", "ConfigError", "reset_horizon", "validate", "should_resume", "torch_threads",
-           "recipe_settings", "unknown_settings"]
+           "recipe_settings", "unknown_settings", "RETIRED_KEYS", "retired_key_problem"]
 
 
 ALGOS = tuple(KINDS)  # the kinds of reset agent (reset_agents.py)
 CONF = Path(__file__).resolve().parent / "conf"
+
+#: the keys of run batching (several runs in one process, or one agent pair over copies of a task), retired;
+#: older runs' ``config.yaml`` files still hold them (null, false), which the report reads as no setting
+RETIRED_KEYS = ("seeds", "arms", "vary", "vary_values", "speed.batched_acting")
+#: the last commit that had run batching (docs/many-runs.md)
+LAST_BATCHING_COMMIT = "eb8b414"
 
 
 class ConfigError(ValueError):
@@ -44,10 +50,6 @@ def actor_problems(cfg: DictConfig) -> list[str]:
     if head == "tanh_normal" and setting(cfg, "update_order") != "release":
         problems.append("reset.actor.head=tanh_normal needs update_order=release (its actor step samples actions; "
                         "the classifiers' labels take its deterministic action tanh(loc))")
-    remedy = head != "tanh" or setting(cfg, "reset.actor.preact_penalty") or setting(cfg, "reset.actor.action_l2")
-    if remedy and (arm_count(cfg) is not None or OmegaConf.select(cfg, "seeds", default=None) is not None):
-        problems.append("reset.actor.* other than the release's tanh head runs in single runs only (not with seeds= "
-                        "or arms=); run seeds as a -m grid")
     return problems
 
 
@@ -93,7 +95,7 @@ def validate(cfg: DictConfig) -> None:
     precision = OmegaConf.select(cfg, "speed.matmul_precision", default="ieee")
     if precision not in MATMUL_PRECISIONS:
         problems.append(f"speed.matmul_precision must be one of {', '.join(MATMUL_PRECISIONS)}; got {precision!r}")
-    for flag in ("speed.accelerate", "speed.fused_adam", "speed.retain_memory", "speed.batched_acting"):
+    for flag in ("speed.accelerate", "speed.fused_adam", "speed.retain_memory"):
         value = OmegaConf.select(cfg, flag, default=True)
         if not isinstance(value, bool):
             problems.append(f"{flag} must be true or false, got {value!r}")
@@ -117,16 +119,6 @@ def validate(cfg: DictConfig) -> None:
     problems += actor_problems(cfg)
     if int(cfg.heat_up) < 0:
         problems.append(f"heat_up must be >= 0, got {cfg.heat_up}")
-    arms = arm_count(cfg)
-    if arms is not None:
-        if isinstance(arms, bool) or not isinstance(arms, int) or arms < 1:
-            problems.append(f"arms must be a positive integer (the number of environments one agent pair learns on), "
-                            f"got {arms!r}")
-        if OmegaConf.select(cfg, "seeds", default=None) is not None or OmegaConf.select(cfg, "vary", default=None):
-            problems.append("arms (one agent pair over N environments) and seeds / vary (independent runs in one "
-                            "process) cannot be combined")
-        if cfg.task.name.startswith("ur3_") or env:
-            problems.append("arms runs N simulated copies of a task; a UR3 arm is one env (env.* options are not taken)")
     if problems:
         raise ConfigError("invalid configuration:\n  - " + "\n  - ".join(problems))
     checkpoints = Checkpoints(run_dir / "checkpoints", keep=int(cfg.keep_checkpoints))
@@ -143,7 +135,7 @@ def validate(cfg: DictConfig) -> None:
             key, (saved, value) = next(iter(differ.items()))
             raise ConfigError(
                 f"the checkpoint in {latest} is from {key} {saved!r}, this run is {key} {value!r}; "
-                "use another run_dir or the matching task, algo, seed and arms."
+                "use another run_dir or the matching task, algo and seed."
             )
     elif held := checkpoints.folders():
         raise ConfigError(
@@ -207,9 +199,17 @@ def _package_header(path: Path) -> str | None:
     return None
 
 
+def retired_key_problem(key: str) -> str:
+    """The line for a key of run batching (:data:`RETIRED_KEYS`): unknown now, and what runs seeds instead."""
+    return (f"unknown key {key}: run batching (seeds=, arms=, vary=, speed.batched_acting) was retired, its last "
+            f"commit is {LAST_BATCHING_COMMIT}; run seeds and settings as a Hydra -m grid instead, one process per run "
+            "(python recipes/train.py -m seed=0,1,2; docs/many-runs.md)")
+
+
 def unknown_settings(cfg: DictConfig, conf: Path = CONF) -> list[str]:
     """A line for each key of ``cfg`` that the recipe does not define (:func:`recipe_settings`), such as the
-    misspelled ``+total_step=1000``: the recipe would never read it. Hydra's own ``hydra.*`` is left alone."""
+    misspelled ``+total_step=1000``: the recipe would never read it (a key of run batching, retired, says so
+    and what runs seeds instead). Hydra's own ``hydra.*`` is left alone."""
     keys, open_mappings = recipe_settings(conf)
     unknown = []
 
@@ -226,6 +226,9 @@ def unknown_settings(cfg: DictConfig, conf: Path = CONF) -> list[str]:
     walk(OmegaConf.to_container(cfg, resolve=False), "")
     lines = []
     for path in unknown:
+        if path in RETIRED_KEYS:
+            lines.append(retired_key_problem(path))
+            continue
         close = difflib.get_close_matches(path, sorted(keys), n=1, cutoff=0.6)
         hint = f"; the closest known key is {close[0]} (set it without a leading +: {close[0]}=...)" if close else ""
         lines.append(f"unknown key {path}: the recipe's configuration (recipes/conf) does not define it, so "

@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import contextlib
 import time
-from functools import partial
 
 import torch
 from omegaconf import DictConfig
@@ -17,25 +16,17 @@ from absent_keys import setting
 from agents import Agent, with_exploration
 from buffers import buffer_keys
 from config_checks import reset_horizon
-from run_files import arm_count
 from reset_agents import reset_kind
 from task_envs import UpdateBudget
 from torchrl_reset import DualCollector
-from torchrl_reset.many import BatchedDualCollector, PooledCollector
 from torchrl_reset.accel import matmul_products
 
 __all__ = ["make_collector", "Learner", "NonFiniteLoss"]
 
 
-def make_collector(cfg: DictConfig, env, forward: Agent, reset: Agent) -> DualCollector | PooledCollector:
-    """Forward and reset episodes over ``env``, with the paper's OU exploration on both policies.
-
-    With ``arms``: one :class:`~torchrl_reset.BatchedDualCollector` over the N copies, each in its own
-    phase, one example buffer for all, seen as one run's collector (its ``pooled()`` view); copy ``i``
-    is seeded ``seed + i``."""
-    arms = arm_count(cfg)
-    loop = DualCollector if arms is None else partial(BatchedDualCollector, shared_examples=True)
-    collector = loop(
+def make_collector(cfg: DictConfig, env, forward: Agent, reset: Agent) -> DualCollector:
+    """Forward and reset episodes over ``env``, with the paper's OU exploration on both policies."""
+    collector = DualCollector(
         env,
         with_exploration(forward.actor, env.action_spec, cfg),
         with_exploration(reset.actor, env.action_spec, cfg, reset.head),
@@ -47,7 +38,7 @@ def make_collector(cfg: DictConfig, env, forward: Agent, reset: Agent) -> DualCo
         **restart_option(cfg),
     )
     collector.set_seed(int(cfg.seed))
-    return collector if arms is None else collector.pooled()
+    return collector
 
 
 def event_keys(env) -> list[str]:

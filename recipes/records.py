@@ -19,7 +19,7 @@ import torchrl
 from omegaconf import DictConfig, OmegaConf
 from tqdm import tqdm
 
-from buffers import fallback_counts, restore_fallbacks
+from buffers import fallback_count, restore_fallback_count
 from reset_agents import reset_kind
 from absent_keys import setting
 from agents import normalised_action
@@ -189,12 +189,12 @@ class RunRecord:
         self.window = Saturation.empty()
         self.progress.append(row)
         reset_rb = learner.reset_rb
-        counts = fallback_counts(reset_rb)
+        count = fallback_count(reset_rb)
         with torch.random.fork_rng(devices=[]):  # the probe's samples leave training's random stream as it was
             probe = probe_classifier(reset_kind(self.cfg), learner.reset.model, learner.reset.actor,
                                      self.collector.example_buffer, learner.forward_rb, reset_rb, self.trigger.threshold)
-        restore_fallbacks(reset_rb, counts)  # the probe's own sample does not count
-        fallbacks = "" if None in counts else sum(counts)
+        restore_fallback_count(reset_rb, count)  # the probe's own sample does not count
+        fallbacks = "" if count is None else count
         self.diagnostics.append({"frames": frames, **self.trigger_scores.row(), **probe, "sampler_fallbacks": fallbacks})
         for logger in self.loggers:
             logger.log_metrics({k: v for k, v in row.items() if k != "frames" and not _isnan(v)}, step=frames)
@@ -204,7 +204,7 @@ class RunRecord:
     def close(self) -> None:
         self.bar.close()
 
-    def summary(self, *, finished: bool, learner, env, robot, matmul_precision: str, extra: dict | None = None) -> dict:
+    def summary(self, *, finished: bool, learner, env, robot, matmul_precision: str) -> dict:
         """The paper's Table 1 metrics and what the run ran on, written to ``summary.json``."""
         cfg, collector, history = self.cfg, self.collector, self.history
         c, returns = collector.counters, history["eval_returns"]
@@ -245,7 +245,7 @@ class RunRecord:
             # product precision and the number of torch threads
             "device": str(cfg.device), "processor": processor_name(), "matmul_precision": matmul_precision,
             "torch_threads": torch.get_num_threads(), **self.code,
-            "torch": torch.__version__, "torchrl": torchrl.__version__, **(extra or {}),
+            "torch": torch.__version__, "torchrl": torchrl.__version__,
         }
         (self.run_dir / "summary.json").write_text(json.dumps(summary, indent=2, default=_json_default))
         for logger in self.loggers:

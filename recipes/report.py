@@ -82,8 +82,10 @@ METRICS = ("average_return", "manual_resets", "forward_share", "reset_success_ra
 COLORS = {"ours": "tab:red", "lnt": "tab:blue", "lnt_sparse": "tab:green"}
 #: Settings that say how a run was executed, recorded or how long it ran, not what it learns (p_thresh is
 #: a grouping of its own, Fig. 4). Runs of one task and algorithm that differ in anything else are
-#: different settings: reported side by side, never averaged together.
-NOT_A_SETTING = ("seed", "seeds", "vary", "vary_values", "device", "threads", "sweep_dir", "run_dir", "resume",
+#: different settings: reported side by side, never averaged together. Older runs' configs also hold the
+#: keys of run batching, retired (``seeds``, ``arms``, ``vary``, ``vary_values``: null in a single run;
+#: ``speed.batched_acting``), which are no setting either.
+NOT_A_SETTING = ("seed", "seeds", "arms", "vary", "vary_values", "device", "threads", "sweep_dir", "run_dir", "resume",
                  "total_steps", "task.total_steps", "eval_every", "log_every", "checkpoint_every",
                  "keep_checkpoints", "keep_states_every", "progress_bar", "logger", "speed", "task.p_thresh")
 PAPER_SETTING = "paper's setting"

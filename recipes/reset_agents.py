@@ -3,8 +3,8 @@ examples) and LNT / LNT-sparse (DDPG on a Q ensemble, trained from a reward).
 
 Everything in the recipe that differs between the two kinds is a method of :class:`ResetAgentKind`: the
 loss and its networks, what the replay buffer keeps and how it is sampled, how a sample is completed
-before the update (success examples, or the reward), the trigger's score and threshold, the batched update
-of a ``seeds=`` batch, and the configuration keys that only one kind reads. The rest of the recipe asks
+before the update (success examples, or the reward), the trigger's score and threshold, and the
+configuration keys that only one kind reads. The rest of the recipe asks
 :func:`reset_kind` and never compares the algorithm's name.
 """
 from __future__ import annotations
@@ -19,7 +19,6 @@ from torchrl.data import LazyTensorStorage, ReplayBuffer
 from absent_keys import ABSENT_KEYS, setting
 from torchrl_reset import EpisodeWindowSampler, NStepStateTransform, ResetTriggerTransform, success_probability
 from torchrl_reset.ensemble import PRIOR_BIAS_DRAWS
-from torchrl_reset.many import RunDDPGUpdate, RunRCEUpdate
 from torchrl_reset.td_bounds import bound_td0_targets
 
 __all__ = ["ResetAgentKind", "RCEKind", "LNTKind", "reset_kind", "lnt_batch", "END_FLAGS"]
@@ -40,9 +39,6 @@ class ResetAgentKind:
     critic_loss: str
     #: whether its trigger score is a success probability (ours) rather than a value (LNT's Q)
     scores_probability: bool
-    #: whether its replay needs each environment's steps in time order (an n-step transform): with ``arms``,
-    #: one buffer per arm (:class:`~buffers.ArmReplay`)
-    time_ordered_replay: bool
     #: how its trigger reduces the members' scores
     reduction: str
 
@@ -59,10 +55,10 @@ class ResetAgentKind:
         """Its replay buffer of ``size`` rows."""
         raise NotImplementedError
 
-    def buffer_keys(self, cfg: DictConfig, agent, *, arms: bool) -> list[tuple]:
+    def buffer_keys(self, cfg: DictConfig, agent) -> list[tuple]:
         """The entries its replay buffer keeps: what its loss reads (``loss.in_keys``; entries the sample gets
         later, such as the success examples, are not in a collected step and are skipped), its end flags,
-        and what its buffer's own transform or routing reads."""
+        and what its buffer's own transform reads."""
         raise NotImplementedError
 
     def prepare(self, sample, info: dict, examples, cfg: DictConfig):
@@ -73,16 +69,12 @@ class ResetAgentKind:
         """The trigger's threshold for this run."""
         raise NotImplementedError
 
-    def trigger(self, model, threshold, trigger_class=ResetTriggerTransform) -> ResetTriggerTransform:
+    def trigger(self, model, threshold) -> ResetTriggerTransform:
         """The reset trigger on ``model``."""
         raise NotImplementedError
 
     def member_scores(self, values: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """The model's outputs as ``(C, score)`` per member (diagnostics: C is NaN where it has no classifier)."""
-        raise NotImplementedError
-
-    def batched_update(self, losses, optimizers, cfg: DictConfig, tau: float):
-        """The run-batched update of a ``seeds=`` batch over the runs' loss modules."""
         raise NotImplementedError
 
     def check(self, cfg: DictConfig) -> list[str]:
@@ -93,7 +85,7 @@ class ResetAgentKind:
 class RCEKind(ResetAgentKind):
     """Ours: recursive classification of examples (RCE) on K classifiers with randomized priors."""
 
-    name, critic_loss, scores_probability, time_ordered_replay, reduction = "ours", "loss_classifier", True, True, "mean"
+    name, critic_loss, scores_probability, reduction = "ours", "loss_classifier", True, "mean"
 
     def build(self, cfg, actor, obs_dim, act_dim, parts):
         model = parts.ensemble(
@@ -124,12 +116,9 @@ class RCEKind(ResetAgentKind):
                             transform=NStepStateTransform(cfg.algo.n_steps),
                             sampler=EpisodeWindowSampler(cfg.algo.n_steps) if episodes else None)
 
-    def buffer_keys(self, cfg, agent, *, arms):
+    def buffer_keys(self, cfg, agent):
         # the n-step transform reads the trajectory id beside the end flags
-        keys = [*map(_nested, agent.loss.in_keys), *END_FLAGS, ("collector", "traj_ids")]
-        if arms:
-            keys.append(("collector", "env_ids"))  # ArmReplay's routing
-        return keys
+        return [*map(_nested, agent.loss.in_keys), *END_FLAGS, ("collector", "traj_ids")]
 
     def prepare(self, sample, info, examples, cfg):
         if info.get("fallback", False):  # no reset episode has n transitions yet: the release's one-step label
@@ -140,14 +129,11 @@ class RCEKind(ResetAgentKind):
     def threshold(self, cfg):
         return float(cfg.task.p_thresh if cfg.algo.threshold is None else cfg.algo.threshold)
 
-    def trigger(self, model, threshold, trigger_class=ResetTriggerTransform):
-        return trigger_class(model, threshold)
+    def trigger(self, model, threshold):
+        return ResetTriggerTransform(model, threshold)
 
     def member_scores(self, values):
         return torch.sigmoid(values), success_probability(values)
-
-    def batched_update(self, losses, optimizers, cfg, tau):
-        return RunRCEUpdate(losses, optimizers, tau=tau)
 
     def check(self, cfg):
         problems = []
@@ -171,7 +157,7 @@ class RCEKind(ResetAgentKind):
 class LNTKind(ResetAgentKind):
     """LNT (shaped reward) and LNT-sparse (the success flag as its reward): DDPG on K Q-functions with priors."""
 
-    critic_loss, scores_probability, time_ordered_replay, reduction = "loss_value", False, False, "min"
+    critic_loss, scores_probability, reduction = "loss_value", False, "min"
 
     def __init__(self, name: str) -> None:
         self.name = name
@@ -194,8 +180,8 @@ class LNTKind(ResetAgentKind):
     def replay(self, cfg, size, batch_size):
         return ReplayBuffer(storage=LazyTensorStorage(size), batch_size=batch_size)
 
-    def buffer_keys(self, cfg, agent, *, arms):
-        # its rows are single transitions: one buffer serves every arm; the reward comes from these two
+    def buffer_keys(self, cfg, agent):
+        # its rows are single transitions; the reward comes from these two
         return [*map(_nested, agent.loss.in_keys), *END_FLAGS, ("next", "reset_reward"), ("next", "reset_success")]
 
     def prepare(self, sample, info, examples, cfg):
@@ -204,15 +190,12 @@ class LNTKind(ResetAgentKind):
     def threshold(self, cfg):
         return float(cfg.algo.threshold)  # Q_thresh
 
-    def trigger(self, model, threshold, trigger_class=ResetTriggerTransform):
-        return trigger_class(model, threshold, score="value", reduction="min",
-                             model_out_key="state_action_value", score_key="reset_value")
+    def trigger(self, model, threshold):
+        return ResetTriggerTransform(model, threshold, score="value", reduction="min",
+                                     model_out_key="state_action_value", score_key="reset_value")
 
     def member_scores(self, values):
         return torch.full_like(values, math.nan), values
-
-    def batched_update(self, losses, optimizers, cfg, tau):
-        return RunDDPGUpdate(losses, optimizers, gamma=float(cfg.gamma), tau=tau, reward_key="lnt_reward")
 
     def check(self, cfg):
         bounds = OmegaConf.select(cfg, "algo.reward_bounds", default=None)

@@ -19,9 +19,8 @@ from typing import Callable
 
 import numpy as np
 import torch
-from omegaconf import OmegaConf
 
-__all__ = ["RunFolderBusy", "run_folder_lock", "arm_count", "run_identity", "identity_differences", "code_version",
+__all__ = ["RunFolderBusy", "run_folder_lock", "run_identity", "identity_differences", "code_version",
            "processor_name", "Checkpoints", "CheckpointDamaged", "checkpoint_step", "checkpoint_problems",
            "no_intact_checkpoint", "TrainingState", "RunInterrupted", "stop_on_signals", "reset_outcomes_by_quarter",
            "CsvTable", "dump_buffer"]
@@ -65,20 +64,20 @@ def processor_name(cpuinfo: Path = Path("/proc/cpuinfo")) -> str:
     return f"{name}, {widest}" if widest else name
 
 
-def arm_count(cfg) -> int | None:
-    """``arms``: None for one environment, or N: one agent pair over N copies of the task (one run)."""
-    return OmegaConf.select(cfg, "arms", default=None)
-
-
 def run_identity(cfg) -> dict:
-    """What names a run in its checkpoints' ``meta.json``: task, algorithm, seed and arms."""
-    return {"task": cfg.task.name, "algo": cfg.algo.name, "seed": int(cfg.seed), "arms": arm_count(cfg)}
+    """What names a run in its checkpoints' ``meta.json``: task, algorithm and seed."""
+    return {"task": cfg.task.name, "algo": cfg.algo.name, "seed": int(cfg.seed)}
 
 
 def identity_differences(meta: dict, cfg) -> dict[str, tuple]:
     """``{key: (saved, here)}`` for each part of :func:`run_identity` where a checkpoint's ``meta.json`` names
-    another run than ``cfg`` (a key that ``meta.json`` lacks reads None: one environment, for ``arms``)."""
-    return {key: (meta.get(key), value) for key, value in run_identity(cfg).items() if meta.get(key) != value}
+    another run than ``cfg``. Older code also wrote ``arms`` there: null (or absent) for a run on one
+    environment, as every run is now; a number, one agent pair over that many copies of the task (run
+    batching, retired), is another run: ``{"arms": (N, None)}``."""
+    differ = {key: (meta.get(key), value) for key, value in run_identity(cfg).items() if meta.get(key) != value}
+    if meta.get("arms") is not None:
+        differ["arms"] = (meta["arms"], None)
+    return differ
 
 
 class CheckpointDamaged(RuntimeError):
@@ -86,15 +85,14 @@ class CheckpointDamaged(RuntimeError):
 
 
 def dump_buffer(rb, path: Path) -> None:
-    """``rb.dumps(path)`` (a replay buffer, or an :class:`~buffers.ArmReplay` of them). A buffer loaded from a
-    checkpoint and not written to since has no last write cursor, and torchrl warns that it "may not be
-    saved properly": that cursor only sets the shift of a checkpointer's save hooks (the trajectory
-    layouts), so where no storage has such hooks, as here, the buffer is saved whole and exactly, and
-    that warning alone is silenced (any hook present: it stands)."""
+    """``rb.dumps(path)`` for a replay buffer. A buffer loaded from a checkpoint and not written to since has
+    no last write cursor, and torchrl warns that it "may not be saved properly": that cursor only sets the
+    shift of a checkpointer's save hooks (the trajectory layouts), so where its storage has no such hooks,
+    as here, the buffer is saved whole and exactly, and that warning alone is silenced (a hook present: it
+    stands)."""
     import warnings
 
-    storages = [b.storage for b in getattr(rb, "buffers", [rb])]
-    hookless = all(not getattr(s.checkpointer, "_save_hooks", None) for s in storages)
+    hookless = not getattr(rb.storage.checkpointer, "_save_hooks", None)
     with warnings.catch_warnings():
         if hookless:
             warnings.filterwarnings("ignore", message="last_cursor is None", category=UserWarning)
@@ -217,9 +215,9 @@ class Checkpoints:
 
     def due_for_keeping(self, frames: int, kept_steps: list[int] | None = None) -> bool:
         """Whether a checkpoint at step ``frames`` keeps its state: the first checkpoint at or past each
-        multiple of ``keep_states_every`` does (the multiple itself in a run on one env; with N arms an
-        iteration takes up to N steps and a checkpoint may land a few steps past it). ``kept_steps``: the
-        steps of the kept states, where the caller has them (default: read from ``kept/``)."""
+        multiple of ``keep_states_every`` does (mostly the multiple itself, a multiple of ``checkpoint_every``;
+        one past it where a run stopped there). ``kept_steps``: the steps of the kept states, where the caller
+        has them (default: read from ``kept/``)."""
         every = self.keep_states_every
         if not every or frames < every:
             return False
@@ -388,14 +386,11 @@ class TrainingState:
         self.forward, self.reset, self.collector, self.eval_env = forward, reset, collector, eval_env
         self.buffers = {"forward_buffer": forward_rb, "reset_buffer": reset_rb}
         self.history: dict = {}
-        self.before_save = None  # called first by save(): a batch writes the run's optimizer state back here
 
     def save(self) -> Path:
         """A complete checkpoint at the collector's step (crash-safe: see :class:`Checkpoints`)."""
         cfg = self.cfg
         meta = {**run_identity(cfg), "frames": self.collector.frames}
-        if self.before_save is not None:
-            self.before_save()
         return self.checkpoints.save(self.collector.frames, self._write, meta)
 
     def _write(self, folder: Path) -> None:
@@ -470,15 +465,16 @@ def no_intact_checkpoint(root: Path, damaged: list[tuple[Path, list[str]]]) -> s
 
 
 def _own(state: dict) -> dict:
-    """The state dict's tensors in storage of their own: torch.save writes a view's whole storage, and a
-    run of a batch keeps its parameters as views into the batch's stacked tensors."""
+    """The state dict's tensors in storage of their own: torch.save writes a view's whole storage (a tensor
+    that views part of a larger one would carry all of it)."""
     return {k: v.clone() if isinstance(v, torch.Tensor) else v for k, v in state.items()}
 
 
 class RunInterrupted(Exception):
-    """A signal stopped the run before ``total_steps``. ``summaries``: the runs' summaries, each run checkpointed
-    at the step it stopped; empty when a second Ctrl-C cut the step under way short (the last checkpoint
-    stands). ``exit_code``: the shell's convention, 128 + the signal's number (130 for SIGINT, 143 for SIGTERM)."""
+    """A signal stopped the run before ``total_steps``. ``summaries``: the run's summary (a list of one), the
+    run checkpointed at the step it stopped; empty when a second Ctrl-C cut the step under way short (the last
+    checkpoint stands). ``exit_code``: the shell's convention, 128 + the signal's number (130 for SIGINT, 143
+    for SIGTERM)."""
 
     def __init__(self, signum: int, summaries: list[dict], message: str) -> None:
         super().__init__(message)

@@ -40,7 +40,7 @@ def load_agents(run_dir: Path | str, *, checkpoint: Path | str | None = None,
     ``agents`` names the ones to build (``("reset",)`` for a probe of the reset agent alone); the others
     are None in the result. A ``checkpoint`` given (absolute, relative to the working directory, or to
     ``run_dir``) is checked as a resume checks one: a damaged one raises ``CheckpointDamaged``, another
-    run's (task, algo, seed or arms differ) ``ValueError``."""
+    run's (task, algo or seed differ) ``ValueError``."""
     run_dir = Path(run_dir)
     unknown = set(agents) - {"forward", "reset"}
     if isinstance(agents, str) or unknown or not agents:

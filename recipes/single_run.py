@@ -1,5 +1,4 @@
-"""One training run's pieces, built: Algorithm 1's set-up (lines 1-4) for ``recipes/train.py`` and for the
-runs of a ``seeds=`` batch (``recipes/batch.py``), which both import it."""
+"""One training run's pieces, built: Algorithm 1's set-up (lines 1-4) for ``recipes/train.py``."""
 from __future__ import annotations
 
 import logging
@@ -87,12 +86,8 @@ class TrainingRun:
     def after_step(self, batch, phase: str) -> None:
         """The step's record, then the evaluation, log row and checkpoint that fall on this step."""
         self.record.step(batch, phase)
-        self.after_frames(self.collector.frames - batch.numel())
-
-    def after_frames(self, before: int) -> None:
-        """The evaluation, log row and checkpoint due since step ``before`` (one step earlier for a run on
-        one env; with N arms an iteration takes up to N steps and may pass a multiple of ``eval_every``)."""
         cfg, frames = self.cfg, self.collector.frames
+        before = frames - batch.numel()
 
         def due(every) -> bool:
             return frames // int(every) > before // int(every)
@@ -104,24 +99,16 @@ class TrainingRun:
         if due(cfg.checkpoint_every):
             self.checkpoint()
 
-    def adopt(self, collector) -> None:
-        """Collects with ``collector`` from now on (a batch's :meth:`~torchrl_reset.many.BatchedDualCollector.view`,
-        loaded from this run's own collector): every piece that reads the collector reads it."""
-        own = self.collector
-        for holder in (self, self.state, self.record, self.learner):
-            holder.collector = collector
-        own.shutdown()  # its env is not stepped again
-
     def checkpoint(self):
         self.record.mark_time()
         return self.state.save()
 
-    def finish(self, interrupted: bool, extra: dict | None = None) -> dict:
-        """The last checkpoint and the summary (with ``extra`` entries); closes the envs."""
+    def finish(self, interrupted: bool) -> dict:
+        """The last checkpoint and the summary; closes the envs."""
         self.checkpoint()
         finished = self.collector.frames >= int(self.cfg.total_steps) and not interrupted
         summary = self.record.summary(finished=finished, learner=self.learner, env=self.env, robot=self.robot,
-                                      matmul_precision=self.matmul_precision, extra=extra)
+                                      matmul_precision=self.matmul_precision)
         self.collector.shutdown()
         self.eval_env.close()
         return summary

@@ -56,8 +56,9 @@ def keyed_by_start(resets: list[dict]) -> dict[int, dict]:
 
 
 def resets_by_start(run: Path) -> dict[int, dict]:
-    """``keyed_by_start`` of a run folder's ``resets.csv``. An ``arms`` run is refused (ValueError): its
-    ``frames`` count the steps of all its envs, and ``steps`` one env's, so ``frames - steps`` is no start."""
+    """``keyed_by_start`` of a run folder's ``resets.csv``. The folder of an ``arms`` run (one agent pair over
+    N copies of a task, which older code ran: run batching, retired) is refused (ValueError): its ``frames``
+    count the steps of all its envs, and ``steps`` one env's, so ``frames - steps`` is no start."""
     from omegaconf import OmegaConf
 
     cfg, _ = run_task(run)

@@ -10,9 +10,8 @@ from torchrl.envs import TransformedEnv
 from torchrl.envs.utils import ExplorationType, set_exploration_type, step_mdp
 
 from agents import Agent, make_trigger
-from run_files import arm_count
 from torchrl_reset import ResetTriggerTransform
-from torchrl_reset_envs import BatchedTaskEnv, make_env
+from torchrl_reset_envs import make_env
 
 __all__ = ["env_kwargs", "EVAL_SEED_OFFSET", "task_dimensions", "make_task_env", "UpdateBudget", "realtime_env", "safety_counters", "evaluate"]
 
@@ -43,12 +42,8 @@ def task_dimensions(cfg: DictConfig):
 def make_task_env(cfg: DictConfig, reset_agent: Agent, *, for_eval: bool = False,
                   **options) -> tuple[TransformedEnv, ResetTriggerTransform]:
     """The task's env with the reset trigger of ``reset_agent``; ``options`` go to ``make_env``
-    (``render_mode``, ``width``...). With ``arms`` (training only) one env of N copies of the task,
-    the trigger watching every copy; evaluation runs on one copy."""
-    arms = None if for_eval else arm_count(cfg)
-    trigger = make_trigger(cfg, reset_agent, rows=arms is not None)
-    if arms is not None:  # one env of N copies (seeded seed, seed + 1, ... by the collector), the trigger over all
-        return TransformedEnv(BatchedTaskEnv(cfg.task.name, arms, device=cfg.device, **options), trigger), trigger
+    (``render_mode``, ``width``...)."""
+    trigger = make_trigger(cfg, reset_agent)
     env = make_env(cfg.task.name, device=cfg.device, **env_kwargs(cfg, for_eval=for_eval), **options)
     env.append_transform(trigger)
     return env, trigger

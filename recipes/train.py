@@ -4,10 +4,8 @@
     python recipes/train.py task=cliff_cheetah algo=lnt preset=quick              # a short CPU run
     python recipes/train.py task=cliff_cheetah algo=lnt preset=quick resume=true  # continue a killed run
     python recipes/train.py -m task=peg_insertion_insert algo=ours,lnt,lnt_sparse seed=0,1,2  # a grid, in parallel
-    python recipes/train.py task=peg_insertion_insert algo=ours seeds=5  # seeds 0-4 in one process, updates batched
-    python recipes/train.py task=peg_insertion_insert algo=ours arms=4   # one agent pair over 4 copies of the task
-    python recipes/train.py task=cliff_cheetah algo=ours seeds=3 vary=task.p_thresh vary_values=[0.1,0.3] \
-        run_dir='runs/${task.name}/${algo.name}/p${task.p_thresh}/seed${seed}'  # Fig. 4: 6 runs in one process
+    python recipes/train.py -m task=cliff_cheetah algo=ours seed=0,1,2 task.p_thresh=0.1,0.3 \
+        run_dir='runs/${task.name}/${algo.name}/p${task.p_thresh}/seed${seed}'  # Fig. 4: 6 runs
 
 Tasks: cliff_cheetah, cliff_walker, peg_insertion_insert, peg_insertion_remove, ball_in_cup_catch,
 ball_in_cup_throw. Everything lands in ``run_dir`` (default ``runs/<task>/<algo>/seed<seed>``):
@@ -36,15 +34,13 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from agents import Agent  # noqa: E402
-from batch import batch_runs, run_configs, train_batch  # noqa: E402
-from config_checks import ConfigError, validate  # noqa: E402
+from config_checks import RETIRED_KEYS, ConfigError, retired_key_problem, validate  # noqa: E402
 from learner import NonFiniteLoss  # noqa: E402
-from run_files import (Checkpoints, CheckpointDamaged, RunFolderBusy, RunInterrupted, arm_count,  # noqa: E402
-                       run_folder_lock, stop_on_signals)
+from run_files import (Checkpoints, CheckpointDamaged, RunFolderBusy, RunInterrupted, run_folder_lock,  # noqa: E402
+                       stop_on_signals)
 from single_run import RobotStopped, TrainingDiverged, build_run, set_up_process  # noqa: E402
 
 from torchrl_reset import DualCollector  # noqa: E402
-from torchrl_reset.many import split_phases  # noqa: E402
 from torchrl_reset_envs.ur3_backends import RobotFault  # noqa: E402
 
 log = logging.getLogger("torchrl_reset.train")
@@ -62,7 +58,7 @@ def train(cfg: DictConfig) -> dict:
 def _train(cfg: DictConfig) -> dict:
     validate(cfg)
     run = build_run(cfg, set_up_process(cfg))
-    collector, learner, arms = run.collector, run.learner, arm_count(cfg)
+    collector, learner = run.collector, run.learner
 
     # Algorithm 1, lines 5-28: each batch is one action of a forward or a reset episode
     stopped_by = None  # the signal (SIGINT, SIGTERM) that ends the run after its current step
@@ -70,19 +66,16 @@ def _train(cfg: DictConfig) -> dict:
         with stop_on_signals() as stop_requested:
             for batch in collector:
                 batch = batch.to(cfg.device)
-                # one step; with N arms, the steps of one iteration (up to one per arm), by phase
-                parts = split_phases(batch).items() if arms else [(DualCollector.phase_of(batch), batch)]
-                for phase, part in parts:
-                    agent = learner.agents[phase]  # pi_f and Q, or pi_r and the C_i (LNT: the Q_i)
-                    learner.store(part, phase)  # lines 16 / 23: save the transition in that phase's buffer
-                    # ... and update that agent, once per step taken, past its heat-up
-                    for _ in range(part.numel() if learner.updating(phase) else 0):
-                        sample = learner.sample(phase)  # replay rows (ours: + success examples; LNT: + reward)
-                        with learner.timed(phase):
-                            losses = update(agent, sample, learner.losses[phase], release_order=learner.release_order)
-                        learner.record_losses(phase, losses)
-                    run.record.step(part, phase)
-                run.after_frames(collector.frames - batch.numel())  # evaluation, log row, checkpoint when due
+                phase = DualCollector.phase_of(batch)
+                agent = learner.agents[phase]  # pi_f and Q, or pi_r and the C_i (LNT: the Q_i)
+                learner.store(batch, phase)  # lines 16 / 23: save the transition in that phase's buffer
+                # ... and update that agent, once per step taken, past its heat-up
+                for _ in range(batch.numel() if learner.updating(phase) else 0):
+                    sample = learner.sample(phase)  # replay rows (ours: + success examples; LNT: + reward)
+                    with learner.timed(phase):
+                        losses = update(agent, sample, learner.losses[phase], release_order=learner.release_order)
+                    learner.record_losses(phase, losses)
+                run.after_step(batch, phase)  # its record; the evaluation, log row and checkpoint when due
                 if stop_requested:
                     stopped_by = stop_requested[0]
                     log.warning("%s at step %d: checkpointing", signal.Signals(stopped_by).name, collector.frames)
@@ -101,7 +94,7 @@ def _train(cfg: DictConfig) -> dict:
         raise RobotStopped(f"{err} The run is checkpointed in {path}; resume=true continues it.") from err
     finally:
         run.record.close()
-    summary = run.finish(stopped_by is not None, extra=None if arms is None else {"arms": arms})
+    summary = run.finish(stopped_by is not None)
     if stopped_by is not None:
         raise RunInterrupted(stopped_by, [summary], f"{signal.Signals(stopped_by).name} stopped the run at step "
                                                     f"{collector.frames}, checkpointed there")
@@ -161,8 +154,14 @@ LOG_FORMAT = "[%(asctime)s][%(name)s][%(levelname)s] - %(message)s"  # Hydra's
 
 
 def main() -> None:
-    """The command line: ``python recipes/train.py [overrides]`` (see the module's docstring)."""
+    """The command line: ``python recipes/train.py [overrides]`` (see the module's docstring). A key of run
+    batching (``seeds=3``, ``arms=2``: retired) stops it before Hydra, with what runs seeds instead (exit 2)."""
     args = sys.argv[1:]
+    retired = [key for key in dict.fromkeys(a.lstrip("+~").split("=")[0].replace("/", ".") for a in args if "=" in a)
+               if key in RETIRED_KEYS]
+    if retired:
+        print("error: invalid configuration:\n  - " + "\n  - ".join(map(retired_key_problem, retired)), file=sys.stderr)
+        sys.exit(2)
     if not any(a in ("-m", "--multirun") or a.startswith("hydra.mode=") for a in args):
         given = {a.lstrip("+~").split("=")[0].replace("/", ".") for a in args}
         extra = [override for key, override in SINGLE_RUN_HYDRA if not any(g.startswith(key) for g in given)]
@@ -174,59 +173,47 @@ def main() -> None:
 
 @hydra.main(version_base="1.3", config_path="conf", config_name="config")
 def run_command(cfg: DictConfig) -> None:
-    """Runs the configuration (one run, or a ``seeds=`` batch) and prints its summary. Exit status: 0 for a
-    finished run; 2 for a configuration refused before anything was written; 3 for a diverged run, 4 for a
-    robot fault (both checkpointed); 128 + the signal's number for a run a signal stopped (130 for Ctrl-C,
-    143 for SIGTERM), which then prints the command that continues it."""
-    runs, configs = None, [cfg]
+    """Runs the configuration's run and prints its summary. Exit status: 0 for a finished run; 2 for a
+    configuration refused before anything was written; 3 for a diverged run, 4 for a robot fault (both
+    checkpointed); 128 + the signal's number for a run a signal stopped (130 for Ctrl-C, 143 for SIGTERM),
+    which then prints the command that continues it."""
     try:
-        runs = batch_runs(cfg)
-        if runs is None:
-            validate(cfg)  # refused before the run folder exists (train checks again under the folder's lock)
-        else:
-            configs = run_configs(cfg, runs, check=False)  # train_batch validates them before making the folders
-        _log_to_run_folders(configs)
-        summaries = [train(cfg)] if runs is None else train_batch(cfg, runs)
+        validate(cfg)  # refused before the run folder exists (train checks again under the folder's lock)
+        _log_to_run_folder(cfg)
+        summary = train(cfg)
     except RunInterrupted as stop:
-        _print_results(cfg, runs, stop.summaries)
-        print(f"{stop}. To continue:\n  {continue_command(configs)}", file=sys.stderr)
+        _print_results(cfg, stop.summaries)
+        print(f"{stop}. To continue:\n  {continue_command(cfg)}", file=sys.stderr)
         sys.exit(stop.exit_code)
     except KeyboardInterrupt:  # outside the training loop: while the run was being built or checkpointed
         print(f"interrupted before the run could stop cleanly; its last checkpoint stands. To continue:\n  "
-              f"{continue_command(configs)}", file=sys.stderr)
+              f"{continue_command(cfg)}", file=sys.stderr)
         sys.exit(128 + signal.SIGINT)
     except (ConfigError, CheckpointDamaged, RunFolderBusy, TrainingDiverged, RobotStopped) as err:
         print(f"error: {err}", file=sys.stderr)
         sys.exit({ConfigError: 2, CheckpointDamaged: 2, RunFolderBusy: 2, TrainingDiverged: 3}.get(type(err), 4))
-    _print_results(cfg, runs, summaries)
+    _print_results(cfg, [summary])
 
 
-def _print_results(cfg: DictConfig, runs, summaries: list[dict]) -> None:
-    if runs is None:
-        for summary in summaries:
-            width = max(map(len, summary))
-            for key, value in summary.items():
-                print(f"{key:<{width}}  {value:.4g}" if isinstance(value, float) else f"{key:<{width}}  {value}")
-            print(_in_words(summary))
-            print(f"results in {cfg.run_dir}")
-        return
-    key = cfg.get("vary")
-    for summary, run_cfg, (seed, value) in zip(summaries, run_configs(cfg, runs, check=False), runs):
-        setting = f", {key}={value}" if key else ""
-        print(f"seed {seed}{setting}: {_in_words(summary)} Results in {run_cfg.run_dir}")
+def _print_results(cfg: DictConfig, summaries: list[dict]) -> None:
+    for summary in summaries:
+        width = max(map(len, summary))
+        for key, value in summary.items():
+            print(f"{key:<{width}}  {value:.4g}" if isinstance(value, float) else f"{key:<{width}}  {value}")
+        print(_in_words(summary))
+        print(f"results in {cfg.run_dir}")
 
 
-def _log_to_run_folders(configs: list[DictConfig]) -> None:
-    """The log's lines also go to ``train.log`` in each run folder, which the file gets with its first line."""
-    for run_cfg in configs:
-        handler = logging.FileHandler(Path(run_cfg.run_dir) / "train.log", delay=True)
-        handler.setFormatter(logging.Formatter(LOG_FORMAT))
-        logging.getLogger().addHandler(handler)
+def _log_to_run_folder(cfg: DictConfig) -> None:
+    """The log's lines also go to ``train.log`` in the run folder, which the file gets with its first line."""
+    handler = logging.FileHandler(Path(cfg.run_dir) / "train.log", delay=True)
+    handler.setFormatter(logging.Formatter(LOG_FORMAT))
+    logging.getLogger().addHandler(handler)
 
 
-def continue_command(configs: list[DictConfig]) -> str:
-    """The command that continues the run(s): the command line as given, with ``resume=true`` when every run
-    folder holds a checkpoint (``resume=auto`` otherwise, which also starts a run that has none); a command
+def continue_command(cfg: DictConfig) -> str:
+    """The command that continues the run: the command line as given, with ``resume=true`` when the run
+    folder holds a checkpoint (``resume=auto`` otherwise, which also starts the run if it has none); a command
     with ``resume=auto`` is given back as it is. In a -m grid: this job's overrides."""
     from hydra.core.hydra_config import HydraConfig
     from hydra.types import RunMode
@@ -236,9 +223,9 @@ def continue_command(configs: list[DictConfig]) -> str:
         argv = [Path(sys.executable).name, os.path.relpath(__file__), *HydraConfig.get().overrides.task]
     if any(re.fullmatch(r"\+{0,2}resume=auto", a) for a in argv):
         return shlex.join(argv)
-    every = all(Checkpoints(Path(c.run_dir) / "checkpoints").folders() for c in configs)
+    held = bool(Checkpoints(Path(cfg.run_dir) / "checkpoints").folders())
     return shlex.join([*(a for a in argv if not re.fullmatch(r"\+{0,2}resume=.*", a)),
-                       "resume=true" if every else "resume=auto"])
+                       "resume=true" if held else "resume=auto"])
 
 
 def _in_words(summary: dict) -> str:

@@ -10,9 +10,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
 sys.path.insert(0, str(ROOT / "recipes"))
 
-import bench_acting  # noqa: E402
 import bench_loop  # noqa: E402
-import bench_runs  # noqa: E402
 import bench_updates  # noqa: E402
 
 # peg-insertion: 14 observations, 7 actions; the paper's 400-300 networks
@@ -99,43 +97,8 @@ def test_loop_benchmark_command_gives_ratios_and_the_paper_run_projection(tmp_pa
     assert "paper run" in next(tmp_path.glob("*.md")).read_text()
 
 
-def test_runs_benchmark_command_gives_the_batch_against_separate_processes(tmp_path):
-    tiny = ["hidden_sizes=[16,16]", "task.forward_horizon=20", "forward.batch_size=16", "reset.batch_size=16"]
-    report = bench_runs.main(["--runs", "2", "--steps", "120", "--heat-up", "20", "--out", str(tmp_path), "--acting",
-                              *[f"--override={o}" for o in tiny]])
-    assert sorted(p.suffix for p in tmp_path.iterdir()) == [".json", ".md"]
-    assert "device=cpu" in report["overrides"]  # --device's default, passed to every run
-    assert {r["device"] for r in report["separate"]["runs"]} == {"cpu"}
-    separate = report["separate"]["aggregate_steps_per_second"]
-    assert separate == pytest.approx(sum(bench_runs.steady_rate(r) for r in report["separate"]["runs"]))
-    for layout in ("", "_acting"):  # each runs as it acts alone, then with speed.batched_acting
-        assert set(report["batched" + layout]) == {2} and set(report["split" + layout]) == {2}
-        for count, row in report["batched" + layout].items():
-            assert row["runs"] == count and row["steady_iterations"] > 0
-            assert row["ratio_vs_separate"] == pytest.approx(row["run_steps_per_second"] / separate)
-        split = report["split" + layout][2]
-        assert [p["runs"] for p in split["processes"]] == [1, 1]
-        assert split["aggregate_run_steps_per_second"] == pytest.approx(
-            sum(p["run_steps_per_second"] for p in split["processes"]))
-    text = next(tmp_path.glob("*.md")).read_text()
-    assert "two processes (1 + 1)" in text and "hidden_sizes=[16,16]" in text and "Table 1 grid" in text
-    assert "2, one process, batched acting" in text and "two processes (1 + 1), batched acting" in text
-    assert report["projected_table1_grid"]["hours"] == pytest.approx(
-        90 * 1_500_000 / report["projected_table1_grid"]["run_steps_per_second"] / 3600)
-
-
-def test_acting_benchmark_command_times_both_collectors_on_the_same_steps(tmp_path):
-    report = bench_acting.main(["--runs", "1", "2", "--steps", "30", "--warm-up", "5", "--out", str(tmp_path)])
-    assert sorted(p.suffix for p in tmp_path.iterdir()) == [".json", ".md"]
-    assert [r["runs"] for r in report["rows"]] == [1, 2]
-    for row in report["rows"]:
-        assert row["separate_ms_per_run_step"] > 0 and row["batched_ms_per_run_step"] > 0
-        assert row["speedup"] == pytest.approx(row["separate_ms_per_run_step"] / row["batched_ms_per_run_step"])
-    assert "| 2 |" in next(tmp_path.glob("*.md")).read_text()
-
-
 @pytest.mark.skipif(torch.cuda.is_available(), reason="checks the message of a machine without CUDA")
-@pytest.mark.parametrize("script", [bench_updates, bench_loop, bench_runs, bench_acting])
+@pytest.mark.parametrize("script", [bench_updates, bench_loop])
 def test_a_cuda_run_without_cuda_stops_with_a_clear_message(script, tmp_path):
     with pytest.raises(SystemExit, match="no CUDA device"):
         script.main(["--device", "cuda", "--out", str(tmp_path)])

@@ -4,6 +4,7 @@ from __future__ import annotations
 import csv
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -662,30 +663,14 @@ def test_ctrl_c_ends_the_run_after_its_step_and_the_printed_command_resumes_it_e
     assert len(rows(run_dir / "progress.csv")) == 4
 
 
-def test_a_batch_stopped_by_sigterm_exits_143_and_prints_the_command_that_continues_it(tmp_path):
-    import shlex
-
-    args = [sys.executable, str(RECIPES / "train.py"), *TINY, "task=peg_insertion_remove", "algo=ours", "seeds=[3,4]",
-            "exploration.restart=episode", "update_order=joint", "total_steps=100000", f"sweep_dir={tmp_path}"]
-    folders = [tmp_path / f"peg_insertion_remove/ours/seed{seed}" for seed in (3, 4)]
-    returncode, err = _signal_when(args, lambda: all((f / "progress.csv").exists() and rows(f / "progress.csv")
-                                                     for f in folders), signal.SIGTERM, poll=0.1)
-    assert returncode == 143, err[-2000:]  # the shell's 128 + SIGTERM
-    for folder in folders:
-        summary = json.loads((folder / "summary.json").read_text())
-        latest = folder / "checkpoints" / (folder / "checkpoints" / "latest").read_text()
-        assert not summary["finished"] and json.loads((latest / "meta.json").read_text())["frames"] == summary["steps"]
-    assert err.strip().splitlines()[-1].strip() == shlex.join([*args, "resume=true"])
-
-
 @pytest.mark.parametrize("override, message", [
     ("+total_step=1000", "unknown key total_step: .*the closest known key is total_steps"),
     ("run_dir=FILE", "run_dir must name a folder, but .*file is a file"),
     ("task.p_thresh=1.5", r"task.p_thresh must lie in \(0, 1\)"),
-], ids=["misspelled-key", "run-dir-a-file", "bad-value"])
+    ("seeds=3", r"unknown key seeds: run batching .* was retired.*-m seed=0,1,2"),
+    ("+arms=2", r"unknown key arms: run batching .* was retired.*-m seed=0,1,2"),
+], ids=["misspelled-key", "run-dir-a-file", "bad-value", "retired-seeds", "retired-arms"])
 def test_a_refused_command_exits_2_with_the_reason_and_leaves_nothing_behind(tmp_path, override, message):
-    import re
-
     (tmp_path / "file").write_text("kept")
     run_dir = str(tmp_path / "file") if override == "run_dir=FILE" else str(tmp_path / "run")
     args = [sys.executable, str(RECIPES / "train.py"), "task=cliff_cheetah", f"run_dir={run_dir}"]
@@ -707,6 +692,11 @@ def test_keys_the_recipe_does_not_define_are_refused_and_those_its_groups_add_ar
         validate(config(tmp_path, "+forward.batchsize=8"))
     with pytest.raises(ConfigError, match="unknown key zzz: .*would read it$"):  # nothing close: no suggestion
         validate(config(tmp_path, "+zzz=1"))
+    # the keys of run batching, retired, say so and what runs seeds instead
+    with pytest.raises(ConfigError) as refused:
+        validate(config(tmp_path, "+seeds=3", "+speed.batched_acting=false"))
+    for key in ("seeds", "speed.batched_acting"):
+        assert re.search(rf"unknown key {key}: run batching .* was retired.*-m seed=0,1,2", str(refused.value))
     validate(config(tmp_path, "task=peg_insertion_insert", "+task.exploration.sigma=0.1"))  # cliff_walker's key
     validate(config(tmp_path, "task=ur3_peg", "+env.acceleration=1.0"))  # env holds the env's own arguments
     validate(config(tmp_path, "preset=quick", "algo=lnt", "algo.reward_bounds=[0,1]"))

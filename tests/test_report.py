@@ -163,12 +163,14 @@ def test_runs_with_different_settings_are_kept_apart_and_named_by_what_they_chan
     runs = tmp_path / "runs"
     task = "peg_insertion_insert"
     # seeds 0 and 1 at the paper's setting; seed 1 ran with other bookkeeping (threads, length, folder,
-    # speed paths, logging) and from a config written before algo.initial_logit_bias existed: still one setting
+    # speed paths, logging, the keys of run batching that older code wrote) and from a config written before
+    # algo.initial_logit_bias existed: still one setting
     a = fabricate(runs, task, "ours", 0, 0.1, 2.0, 10, 0.3, 0.9)
     (a / "config.yaml").write_text(_config_yaml("seed=0", "threads=1"))
     b = fabricate(runs, task, "ours", 1, 0.1, 4.0, 30, 0.5, 1.0)
     (b / "config.yaml").write_text(_config_yaml(
-        "seed=1", "threads=2", "total_steps=5000", "sweep_dir=elsewhere", "resume=auto", "speed.batched_acting=true",
+        "seed=1", "threads=2", "total_steps=5000", "sweep_dir=elsewhere", "resume=auto", "+seeds=null", "+arms=null",
+        "+vary=null", "+vary_values=null", "+speed.batched_acting=true",
         "checkpoint_every=777", "log_every=10", drop="algo.initial_logit_bias"))
     # two options, one seed each: a pessimistic start, and a smaller prior scale with it
     c = fabricate(runs, task, "ours", 2, 0.1, 1.0, 50, 0.1, 0.2)

@@ -129,7 +129,7 @@ def test_a_checkpoint_written_before_manifests_counts_and_resume_auto_agrees_wit
     old.mkdir(parents=True)
     (old / "state.pt").write_bytes(b"state")
     (old / "meta.json").write_text(json.dumps({"task": "peg_insertion_remove", "algo": "ours", "seed": 0,
-                                               "frames": 300, "arms": None}, indent=2))  # as written before
+                                               "frames": 300, "arms": None}, indent=2))  # as older code wrote it
     (run_dir / "checkpoints" / "latest").write_text("step_0000000300")
     checkpoints = Checkpoints(run_dir / "checkpoints")
     assert checkpoints.latest() == old and checkpoints.folders() == [old]
@@ -194,8 +194,8 @@ def test_the_agents_state_of_every_kept_step_outlives_its_checkpoint_and_a_lost_
     assert (tmp_path / "kept" / "step_0000000400" / "state.pt").read_bytes() == b"400 again"
 
 
-def test_with_arms_the_first_checkpoint_past_each_multiple_keeps_its_state(tmp_path):
-    # an iteration over N arms takes up to N steps: checkpoints due every 100 steps land at 102, 201, 300, 402
+def test_the_first_checkpoint_at_or_past_each_multiple_keeps_its_state(tmp_path):
+    # checkpoints that land past the multiples (as where a signal stopped a run): 102, 201, 300, 402
     for every, expected in ((100, [102, 201, 300, 402]), (200, [201, 402])):
         checkpoints = Checkpoints(tmp_path / str(every), keep=1, keep_states_every=every)
         for frames in (102, 201, 300, 402):
@@ -459,10 +459,13 @@ def test_identity_differences_name_each_part_of_a_run_that_differs():
     from omegaconf import OmegaConf
 
     cfg = OmegaConf.create({"task": {"name": "cliff_cheetah"}, "algo": {"name": "lnt"}, "seed": 2})
-    same = {"task": "cliff_cheetah", "algo": "lnt", "seed": 2, "arms": None, "frames": 500}
+    same = {"task": "cliff_cheetah", "algo": "lnt", "seed": 2, "frames": 500}
     assert identity_differences(same, cfg) == {}
-    # a meta.json from before arms existed: one environment, as this run
-    assert identity_differences({k: v for k, v in same.items() if k != "arms"}, cfg) == {}
+    assert identity_differences({"frames": 500}, cfg) == {
+        "task": (None, "cliff_cheetah"), "algo": (None, "lnt"), "seed": (None, 2)}
+    # older code wrote arms too: null for a run on one environment, as every run is now; a config of older
+    # code holds arms: null as well
+    assert identity_differences({**same, "arms": None}, cfg) == {}
+    assert identity_differences({**same, "arms": None}, OmegaConf.merge(cfg, {"arms": None})) == {}
+    # one agent pair over 4 copies of the task (run batching, retired) is another run
     assert identity_differences({**same, "seed": 1, "arms": 4}, cfg) == {"seed": (1, 2), "arms": (4, None)}
-    assert identity_differences({"frames": 500}, OmegaConf.merge(cfg, {"arms": 3})) == {
-        "task": (None, "cliff_cheetah"), "algo": (None, "lnt"), "seed": (None, 2), "arms": (None, 3)}

@@ -170,23 +170,9 @@ def test_a_model_input_missing_from_the_step_gets_a_clear_error():
         env.transform._inv_call(td.exclude("action"))
 
 
-def test_the_paper_trigger_takes_one_threshold_and_a_bool_and_points_to_the_row_trigger():
-    """Per-row state (masks, a threshold per row) belongs to torchrl_reset.many.RowResetTriggerTransform."""
-    with pytest.raises(TypeError, match="RowResetTriggerTransform"):
+def test_the_trigger_takes_one_threshold_and_one_switch_for_the_whole_env():
+    with pytest.raises(TypeError, match="threshold is one number"):
         ResetTriggerTransform(constant_ensemble([0.0]), [0.1, 0.2])
     trigger = ResetTriggerTransform(constant_ensemble([0.0]), 0.1)
-    with pytest.raises(TypeError, match="RowResetTriggerTransform"):
+    with pytest.raises(TypeError, match="set_enabled takes a bool"):
         trigger.set_enabled(torch.tensor([True, False]))
-
-
-def test_a_batched_collector_refuses_a_trigger_that_cannot_work_row_by_row():
-    from torchrl_reset.many import BatchedDualCollector, RowResetTriggerTransform
-    from torchrl_reset_envs import BatchedTaskEnv
-
-    still = TensorDictModule(lambda obs: torch.zeros(*obs.shape[:-1], 7), in_keys=["observation"], out_keys=["action"])
-    ensemble = EnsembleValueOperator(14, 7, num_members=2, hidden_sizes=(8, 8))
-    plain = TransformedEnv(BatchedTaskEnv("peg_insertion_insert", seeds=[0, 1]), ResetTriggerTransform(ensemble, 0.1))
-    with pytest.raises(TypeError, match="RowResetTriggerTransform"):
-        BatchedDualCollector(plain, still, still, max_forward_steps=4)
-    rows = TransformedEnv(BatchedTaskEnv("peg_insertion_insert", seeds=[0, 1]), RowResetTriggerTransform(ensemble, 0.1))
-    BatchedDualCollector(rows, still, still, max_forward_steps=4)

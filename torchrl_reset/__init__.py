@@ -10,13 +10,11 @@ from .nstep import EpisodeWindowSampler, NStepStateTransform
 from .rce_loss import RCELoss, actor_loss, classifier_loss, label_weight, rce_label, shared_label
 from .trigger import ResetTriggerTransform
 from . import accel  # the accelerator: the same numbers, faster (torchrl_reset.accel)
-from . import many  # many runs in one process, N copies of a task: an option (torchrl_reset.many)
 
 __version__ = "0.1.0"
 
 __all__ = [
     "accel",
-    "many",
     "DualCollector",
     "EnsembleValueOperator",
     "EpisodeWindowSampler",

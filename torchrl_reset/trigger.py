@@ -66,8 +66,7 @@ class ResetTriggerTransform(Transform):
 
     Attributes:
         enabled (bool): when ``False`` the model is not evaluated and nothing triggers; the
-            collector turns it off during reset episodes. (A batched env whose copies are in
-            different phases needs a trigger per row: :class:`torchrl_reset.many.RowResetTriggerTransform`.)
+            collector turns it off during reset episodes (one switch for the whole env).
         smoothed (Tensor or None): the smoothing's state, the last smoothed score (None: it restarts
             at the next score); a collector saves and restores it for an exact resume.
 
@@ -131,8 +130,8 @@ class ResetTriggerTransform(Transform):
     @staticmethod
     def _check_threshold(threshold, score) -> float:
         if isinstance(threshold, (torch.Tensor, list, tuple)):
-            raise TypeError("threshold is one number; a threshold per row of a batched env is "
-                            "torchrl_reset.many.RowResetTriggerTransform's.")
+            raise TypeError(f"threshold is one number, the same for every row of the env; got a "
+                            f"{type(threshold).__name__}.")
         threshold = float(threshold)
         if score == "success_probability" and not 0.0 < threshold < 1.0:
             raise ValueError(
@@ -145,8 +144,8 @@ class ResetTriggerTransform(Transform):
     def set_enabled(self, enabled: bool) -> None:
         """Turns the trigger on or off; (re-)enabling restarts the smoothing."""
         if isinstance(enabled, torch.Tensor):
-            raise TypeError("set_enabled takes a bool; a mask of a batched env's rows is "
-                            "torchrl_reset.many.RowResetTriggerTransform's.")
+            raise TypeError("set_enabled takes a bool: the trigger is on or off for the whole env, not row by "
+                            "row; got a tensor.")
         self.enabled = bool(enabled)
         self.smoothed = None
 
