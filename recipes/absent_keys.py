@@ -20,6 +20,10 @@ ABSENT_KEYS = {
     "forward.sampling": "transition",      # the forward buffer uniform over steps (the release: episode first)
     "target_init": "copy",                 # every target a copy of its network (the release's draws: release)
     "algo.success_terminal": False,        # LNT's TD targets bootstrap through a successful reset (as the preset)
+    "algo.independent_batches": False,     # LNT: one batch shared by the members (the authors' K critics: one each)
+    "algo.member_actor_gradient": False,   # LNT: the actor ascends the members' mean
+    "algo.target_draws": False,            # LNT: every target a copy at the start
+    "algo.sampling": "transition",         # LNT: the reset buffer uniform over steps
     "reset.actor.head": "tanh",            # the reset actor: the release's deterministic tanh head ...
     "reset.actor.preact_penalty": 0.0,     # ... with nothing added to its loss
     "reset.actor.action_l2": 0.0,

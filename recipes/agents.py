@@ -201,9 +201,9 @@ def make_reset_agent(cfg: DictConfig, obs_dim: int, action_spec) -> Agent:
             groups = [*groups, {"params": [terms.entropy.log_alpha], "lr": cfg.reset.critic_lr}]
     optimizer = make_adam(cfg, groups)
     targets = parts.soft_update(loss, tau=reset_tau(cfg))  # building it copies the networks into their targets
-    fresh = kind.fresh_target(cfg, obs_dim, act_dim, parts) if releases_targets(cfg) else None
-    if fresh is not None:  # target_init: release
-        network, name = fresh
+    # the targets that start as draws of their own (target_init: release for ours; algo.target_draws for LNT)
+    for network, name in kind.fresh_targets(cfg, loss, obs_dim, act_dim, parts,
+                                            lambda: make_actor(obs_dim, action_spec, cfg.hidden_sizes, parts, head)):
         draw_target(getattr(loss, name), network)
     return Agent(actor, loss, optimizer, targets, model, kind.critic_loss, terms, head)
 

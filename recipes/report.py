@@ -77,9 +77,11 @@ TASK_TITLES = {
     "cliff_cheetah": "cliff-cheetah", "ball_in_cup_throw": "ball-in-cup (throw)",
     "peg_insertion_remove": "peg-insertion (remove)", "cliff_walker": "cliff-walker",
 }
-ALGO_TITLES = {"ours": "ours", "lnt": "LNT", "lnt_sparse": "LNT-sparse"}
+ALGO_TITLES = {"ours": "ours", "lnt": "LNT", "lnt_sparse": "LNT-sparse", "lnt_release": "LNT (release's ensemble)",
+               "lnt_sparse_release": "LNT-sparse (release's ensemble)"}
 METRICS = ("average_return", "manual_resets", "forward_share", "reset_success_rate")
-COLORS = {"ours": "tab:red", "lnt": "tab:blue", "lnt_sparse": "tab:green"}
+COLORS = {"ours": "tab:red", "lnt": "tab:blue", "lnt_sparse": "tab:green", "lnt_release": "tab:cyan",
+          "lnt_sparse_release": "tab:olive"}
 #: Settings that say how a run was executed, recorded or how long it ran, not what it learns (p_thresh is
 #: a grouping of its own, Fig. 4). Runs of one task and algorithm that differ in anything else are
 #: different settings: reported side by side, never averaged together. Older runs' configs also hold the

@@ -13,12 +13,14 @@ import math
 
 import torch
 from omegaconf import DictConfig, OmegaConf
+from tensordict import TensorDict
 from torch import nn
 from torchrl.data import LazyTensorStorage, ReplayBuffer
 
 from absent_keys import ABSENT_KEYS, setting
 from torchrl_reset import EpisodeWindowSampler, NStepStateTransform, ResetTriggerTransform, success_probability
 from torchrl_reset.ensemble import PRIOR_BIAS_DRAWS
+from torchrl_reset.ensemble_ddpg import EnsembleDDPGLoss
 from torchrl_reset.td_bounds import bound_td0_targets
 
 __all__ = ["ResetAgentKind", "RCEKind", "LNTKind", "reset_kind", "lnt_batch", "END_FLAGS"]
@@ -46,10 +48,10 @@ class ResetAgentKind:
         """Its model (the ensemble) and loss module on ``actor``; returns ``(model, loss, param_groups)``."""
         raise NotImplementedError
 
-    def fresh_target(self, cfg: DictConfig, obs_dim: int, act_dim: int, parts):
-        """With ``target_init: release``, a newly drawn network whose parameters its loss's critic targets take
-        (and the name of those targets in the loss); None where its targets stay copies."""
-        return None
+    def fresh_targets(self, cfg: DictConfig, loss, obs_dim: int, act_dim: int, parts, make_actor) -> list[tuple]:
+        """Newly drawn networks whose parameters its loss's targets take at the start, as ``(network, name of
+        those targets in the loss)``; empty where its targets stay copies. ``make_actor()`` draws a reset actor."""
+        return []
 
     def replay(self, cfg: DictConfig, size: int, batch_size: int | None) -> ReplayBuffer:
         """Its replay buffer of ``size`` rows."""
@@ -100,13 +102,15 @@ class RCEKind(ResetAgentKind):
                   {"params": list(model.parameters()), "lr": cfg.reset.critic_lr}]  # the priors are buffers
         return model, loss, groups
 
-    def fresh_target(self, cfg, obs_dim, act_dim, parts):
-        # the target classifiers' trained part starts as networks of their own (the same priors); RCE never
-        # reads the reset actor's target
+    def fresh_targets(self, cfg, loss, obs_dim, act_dim, parts, make_actor):
+        # target_init: release: the target classifiers' trained part starts as networks of their own (the same
+        # priors); RCE never reads the reset actor's target
+        if setting(cfg, "target_init") != "release":
+            return []
         fresh = parts.ensemble(obs_dim, act_dim, num_members=cfg.algo.num_members,
                                hidden_sizes=tuple(cfg.hidden_sizes), prior_scale=0.0)
         _pessimistic_start(cfg, fresh)  # the pessimistic start's output bias holds for the targets too
-        return fresh, "target_classifier_network_params"
+        return [(fresh, "target_classifier_network_params")]
 
     def replay(self, cfg, size, batch_size):
         # the n-step state beside the next state; with algo.nstep_sampling: episode (the release), episodes
@@ -167,25 +171,56 @@ class LNTKind(ResetAgentKind):
             obs_dim, act_dim, num_members=cfg.algo.num_members, hidden_sizes=tuple(cfg.hidden_sizes),
             prior_scale=cfg.algo.prior_scale, out_keys=["state_action_value"],
         )
-        loss = parts.ddpg_loss(actor, model, delay_actor=True, delay_value=True)
-        loss.set_keys(reward="lnt_reward")  # written by prepare(): one column per member
-        loss.make_value_estimator(gamma=cfg.gamma)
         bounds = OmegaConf.select(cfg, "algo.reward_bounds", default=None)
-        if bounds is not None:  # not the paper's: TD targets clipped to the values these rewards allow
-            bound_td0_targets(loss, tuple(bounds))
+        independent, per_member = setting(cfg, "algo.independent_batches"), setting(cfg, "algo.member_actor_gradient")
+        if independent or per_member:  # the authors' K-critic DDPG class (not the project's default LNT)
+            loss = EnsembleDDPGLoss(actor, model, gamma=cfg.gamma, independent_batches=independent,
+                                    member_actor_gradient=per_member, reward_key="lnt_reward",
+                                    reward_bounds=None if bounds is None else tuple(bounds))
+        else:
+            loss = parts.ddpg_loss(actor, model, delay_actor=True, delay_value=True)
+            loss.set_keys(reward="lnt_reward")  # written by prepare(): one column per member
+            loss.make_value_estimator(gamma=cfg.gamma)
+            if bounds is not None:  # not the paper's: TD targets clipped to the values these rewards allow
+                bound_td0_targets(loss, tuple(bounds))
         groups = [{"params": list(loss.actor_network_params.values(True, True)), "lr": cfg.reset.actor_lr},
                   {"params": list(loss.value_network_params.values(True, True)), "lr": cfg.reset.critic_lr}]
         return model, loss, groups
 
+    def fresh_targets(self, cfg, loss, obs_dim, act_dim, parts, make_actor):
+        # algo.target_draws (the release's constructors): the actor's target and every member's but the last
+        # start as independent draws; the last member's target stays a copy (its constructor synced it last)
+        if not setting(cfg, "algo.target_draws"):
+            return []
+        members = parts.ensemble(obs_dim, act_dim, num_members=cfg.algo.num_members,
+                                 hidden_sizes=tuple(cfg.hidden_sizes), prior_scale=0.0,
+                                 out_keys=["state_action_value"])
+        with torch.no_grad():
+            for key, value in TensorDict.from_module(members).items(True, True):
+                value[-1].copy_(loss.value_network_params.get(key)[-1])
+        return [(make_actor(), "target_actor_network_params"), (members, "target_value_network_params")]
+
     def replay(self, cfg, size, batch_size):
-        return ReplayBuffer(storage=LazyTensorStorage(size), batch_size=batch_size)
+        # algo.independent_batches: K batches per update, drawn as one of K * B rows (prepare() splits them);
+        # algo.sampling: episode, the release's buffer: an episode first, then a step in it
+        if setting(cfg, "algo.independent_batches"):
+            batch_size = int(cfg.algo.num_members) * batch_size
+        episodes = setting(cfg, "algo.sampling") == "episode"
+        return ReplayBuffer(storage=LazyTensorStorage(size), batch_size=batch_size,
+                            sampler=EpisodeWindowSampler(1) if episodes else None)
 
     def buffer_keys(self, cfg, agent):
-        # its rows are single transitions; the reward comes from these two
-        return [*map(_nested, agent.loss.in_keys), *END_FLAGS, ("next", "reset_reward"), ("next", "reset_success")]
+        # its rows are single transitions; the reward comes from these two (and the episode-first sampler reads
+        # the trajectory id)
+        episodes = [("collector", "traj_ids")] if setting(cfg, "algo.sampling") == "episode" else []
+        return [*map(_nested, agent.loss.in_keys), *END_FLAGS, ("next", "reset_reward"), ("next", "reset_success"),
+                *episodes]
 
     def prepare(self, sample, info, examples, cfg):
-        return lnt_batch(sample, cfg.algo, int(cfg.algo.num_members))
+        members = int(cfg.algo.num_members)
+        if setting(cfg, "algo.independent_batches"):  # member k's batch at [k]
+            sample = sample.reshape(members, -1)
+        return lnt_batch(sample, cfg.algo, members)
 
     def threshold(self, cfg):
         return float(cfg.algo.threshold)  # Q_thresh
@@ -203,12 +238,18 @@ class LNTKind(ResetAgentKind):
                                    or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in bounds)
                                    or not bounds[0] < bounds[1]):
             return [f"algo.reward_bounds must be [low, high] with low < high, got {bounds!r}"]
-        if not isinstance(setting(cfg, "algo.success_terminal"), bool):
-            return [f"algo.success_terminal must be true or false, got {OmegaConf.select(cfg, 'algo.success_terminal')!r}"]
+        for key in ("algo.success_terminal", "algo.independent_batches", "algo.member_actor_gradient",
+                    "algo.target_draws"):
+            if not isinstance(setting(cfg, key), bool):
+                return [f"{key} must be true or false, got {OmegaConf.select(cfg, key)!r}"]
+        if setting(cfg, "algo.sampling") not in ("episode", "transition"):
+            return [f"algo.sampling must be episode or transition, got {OmegaConf.select(cfg, 'algo.sampling')!r}"]
         return []
 
 
-KINDS = {"ours": RCEKind(), "lnt": LNTKind("lnt"), "lnt_sparse": LNTKind("lnt_sparse")}
+KINDS = {"ours": RCEKind(), "lnt": LNTKind("lnt"), "lnt_sparse": LNTKind("lnt_sparse"),
+         # LNT's ensemble as the authors' K-critic DDPG class runs it (algo.independent_batches and the rest on)
+         "lnt_release": LNTKind("lnt_release"), "lnt_sparse_release": LNTKind("lnt_sparse_release")}
 
 
 def reset_kind(cfg: DictConfig) -> ResetAgentKind:

@@ -113,8 +113,11 @@ def update(agent: Agent, sample, loss_module, *, release_order: bool) -> dict[st
     if release_order:
         critic_loss, _ = getattr(agent.loss, agent.critic_loss)(sample)
         optimizer_step(agent, critic_loss, agent.critic_loss)
-        rows = torch.randint(sample.shape[0], (sample.shape[0],), device=sample.device)
-        actor_batch = sample[rows]
+        if getattr(agent.loss, "draws_actor_rows", False):  # it draws its rows from the members' own batches
+            actor_batch = sample
+        else:
+            rows = torch.randint(sample.shape[0], (sample.shape[0],), device=sample.device)
+            actor_batch = sample[rows]
         if terms is None:
             actor_loss, _ = agent.loss.loss_actor(actor_batch)
         else:  # a tanh-Gaussian actor's loss takes sampled actions (reparameterised)

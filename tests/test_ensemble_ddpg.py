@@ -108,3 +108,66 @@ def test_without_member_gradients_the_actor_ascends_the_members_mean():
             tensor.copy_(loss.value_network_params.get(key)[:1])
     one.loss_actor(batch)[0].backward()
     assert torch.allclose(mean_grad, 0.5 * one.actor_network_params.get(("module", "0", "weight")).grad, atol=1e-7)
+
+
+# -- the recipe's keys and presets ---------------------------------------------------------------------------
+
+import sys  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+from hydra import compose, initialize_config_dir  # noqa: E402
+
+RECIPES = Path(__file__).resolve().parents[1] / "recipes"
+sys.path.insert(0, str(RECIPES))
+
+import train  # noqa: E402
+from agents import make_reset_agent  # noqa: E402
+from buffers import make_buffers  # noqa: E402
+from reset_agents import reset_kind  # noqa: E402
+from task_envs import task_dimensions  # noqa: E402
+
+KEYS = ("independent_batches", "member_actor_gradient", "target_draws", "sampling")
+TINY = ["preset=quick", "task=ball_in_cup_catch", "hidden_sizes=[16,16]", "heat_up=40", "task.forward_horizon=20",
+        "reset.batch_size=8", "forward.batch_size=8", "eval_every=100", "log_every=50", "checkpoint_every=100",
+        "progress_bar=false", "total_steps=200"]
+
+
+def _config(tmp_path, *overrides):
+    with initialize_config_dir(config_dir=str(RECIPES / "conf"), version_base="1.3"):
+        return compose(config_name="config", overrides=[*TINY, f"run_dir={tmp_path}", *overrides])
+
+
+@pytest.mark.parametrize("algo, reward", [("lnt_release", "shaped"), ("lnt_sparse_release", "sparse")])
+def test_the_release_presets_turn_every_option_on_and_keep_their_baselines_reward(tmp_path, algo, reward):
+    cfg = _config(tmp_path, f"algo={algo}")
+    assert [cfg.algo[k] for k in KEYS] == [True, True, True, "episode"]
+    assert cfg.algo.name == algo and cfg.algo.reset_reward == reward and cfg.algo.num_members == 20
+    plain = _config(tmp_path, f"algo={algo.replace('_release', '')}")
+    assert [plain.algo[k] for k in KEYS] == [False, False, False, "transition"]
+
+
+def test_the_release_ensemble_draws_its_targets_and_samples_k_batches(tmp_path):
+    cfg = _config(tmp_path, "algo=lnt_sparse_release", "algo.num_members=3")
+    torch.manual_seed(0)
+    obs_dim, spec = task_dimensions(cfg)
+    agent = make_reset_agent(cfg, obs_dim, spec)
+    loss = agent.loss
+    assert isinstance(loss, EnsembleDDPGLoss) and loss.draws_actor_rows
+    live, target = loss.value_network_params.get("weight_0"), loss.target_value_network_params.get("weight_0")
+    # members 0 and 1 start from targets of their own; the last member's target is its copy
+    assert not torch.equal(live[0], target[0]) and not torch.equal(live[1], target[1])
+    assert torch.equal(live[2], target[2])
+    actor_live = list(loss.actor_network_params.values(True, True))
+    actor_target = list(loss.target_actor_network_params.values(True, True))
+    assert any(not torch.equal(a, b) for a, b in zip(actor_live, actor_target) if a.dim() > 1)
+    _, reset_rb = make_buffers(cfg)
+    assert reset_rb.batch_size == 3 * 8  # K batches of reset.batch_size, split by prepare()
+    with pytest.raises(ValueError, match=r"\[K, B\]"):  # a [B] batch is refused by the K-batch loss
+        loss.loss_value(_batch([8]))
+
+
+@pytest.mark.parametrize("algo", ["lnt_release", "lnt_sparse_release"])
+def test_a_short_run_with_the_release_ensemble_trains(tmp_path, algo):
+    summary = train.train(_config(tmp_path, f"algo={algo}", "algo.num_members=4"))
+    assert summary["finished"] and summary["algo"] == algo
+    assert reset_kind(_config(tmp_path, f"algo={algo}")).name == algo

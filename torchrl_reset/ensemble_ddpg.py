@@ -88,6 +88,12 @@ class EnsembleDDPGLoss(LossModule):
         self.convert_to_functional(value_network, "value_network", create_target_params=True)
 
     @property
+    def draws_actor_rows(self) -> bool:
+        """Whether :meth:`loss_actor` draws its rows itself (from a ``[K, B]`` batch): a caller passes it the
+        critics' whole batch rather than rows drawn from it."""
+        return self.independent_batches
+
+    @property
     def in_keys(self) -> list:
         keys = [*self._observation_keys, "action"]
         return [*keys, *[("next", k) for k in self._observation_keys], ("next", self.reward_key),
