@@ -1,7 +1,9 @@
-"""A run folder's trained agents, read back from one of its checkpoints: what the video, the probes
-and anyone studying a finished run start from (the recipe itself resumes through ``run_files``)."""
+"""A run folder's trained agents, read back from one of its checkpoints, and what else the folder holds (its
+config, its CSV tables, its replay buffers): what the video, the probes and anyone studying a finished run
+start from (the recipe itself resumes through ``run_files``)."""
 from __future__ import annotations
 
+import csv
 import json
 import warnings
 from dataclasses import dataclass
@@ -10,13 +12,15 @@ from typing import Any, Mapping
 
 import torch
 from omegaconf import DictConfig, OmegaConf
+from torchrl.data import ReplayBuffer
 
 from agents import Agent, make_forward_agent, make_reset_agent
+from buffers import make_buffers
 from run_files import (MANIFEST, CheckpointDamaged, Checkpoints, checkpoint_problems, checkpoint_step,
                        identity_differences)
 from task_envs import task_dimensions
 
-__all__ = ["SavedRun", "load_agents"]
+__all__ = ["SavedRun", "load_agents", "load_replay", "latest_checkpoint", "run_config", "run_table"]
 
 _ABSENT = object()
 
@@ -45,26 +49,13 @@ def load_agents(run_dir: Path | str, *, checkpoint: Path | str | None = None,
     unknown = set(agents) - {"forward", "reset"}
     if isinstance(agents, str) or unknown or not agents:
         raise ValueError(f"agents must name 'forward' and/or 'reset' (a tuple), got {agents!r}")
-    config = run_dir / "config.yaml"
-    if not config.exists():
-        raise FileNotFoundError(f"{run_dir} holds no config.yaml: is it a run folder of recipes/train.py?")
-    cfg = OmegaConf.load(config)
-    if checkpoint is None:
-        checkpoint = Checkpoints(run_dir / "checkpoints").latest()
-        if checkpoint is None:
-            raise FileNotFoundError(f"{run_dir / 'checkpoints'} holds no complete checkpoint yet.")
-    else:
-        checkpoint = Path(checkpoint)
-        if not checkpoint.is_absolute() and not checkpoint.exists() and (run_dir / checkpoint).exists():
-            checkpoint = run_dir / checkpoint  # relative to the run folder
-        if checkpoint_step(checkpoint) is None or not (checkpoint / "state.pt").exists():
-            raise FileNotFoundError(f"{checkpoint} is not a complete checkpoint of a run (a step_<steps> folder "
-                                    "holding state.pt).")
-        _check(checkpoint, run_dir, cfg)
+    cfg = run_config(run_dir)
+    checkpoint = _checkpoint(run_dir, checkpoint, cfg)
     cfg.device = "cpu"
     for key, value in (overrides or {}).items():
         if OmegaConf.select(cfg, key, default=_ABSENT) is _ABSENT:
-            raise KeyError(f"{key!r} is not a key of {config}: an override can only change a setting the run has")
+            raise KeyError(f"{key!r} is not a key of {run_dir / 'config.yaml'}: an override can only change a "
+                           "setting the run has")
         OmegaConf.update(cfg, key, value)
     obs_dim, action_spec = task_dimensions(cfg)
     state = torch.load(checkpoint / "state.pt", weights_only=False, map_location="cpu")
@@ -78,12 +69,89 @@ def load_agents(run_dir: Path | str, *, checkpoint: Path | str | None = None,
     return SavedRun(cfg, checkpoint, checkpoint_step(checkpoint), forward, reset)
 
 
+def load_replay(run_dir: Path | str, agent: str = "reset", *, checkpoint: Path | str | None = None) -> ReplayBuffer:
+    """The replay buffer of ``agent`` (``"forward"`` or ``"reset"``) of ``run_dir`` as ``checkpoint`` holds it
+    (default: the run's latest complete checkpoint; named as for :func:`load_agents`, and checked as it checks
+    one), in the buffer the recipe builds for the run (``buffers.make_buffers``, from the run's config, so its
+    sampler and transform are the run's). Its ``storage`` holds the rows as they were written, oldest first
+    until the buffer is full (``write_count`` rows written in all; ours' reset buffer writes a row with its
+    n-step state, once that state is known). A kept state (``checkpoints/kept/``) holds the agents alone, no
+    buffer: FileNotFoundError."""
+    if agent not in ("forward", "reset"):
+        raise ValueError(f"agent must be 'forward' or 'reset', got {agent!r}")
+    run_dir = Path(run_dir)
+    cfg = run_config(run_dir)
+    checkpoint = _checkpoint(run_dir, checkpoint, cfg)
+    folder = checkpoint / f"{agent}_buffer"
+    if not folder.is_dir():
+        kept = checkpoint.parent.name == "kept"
+        raise FileNotFoundError(f"{checkpoint} holds no {agent} replay buffer"
+                                + (": a kept state holds the agents alone" if kept else
+                                   f" (the {agent} agent had stored no step when it was written)"))
+    forward_rb, reset_rb = make_buffers(cfg)
+    rb = forward_rb if agent == "forward" else reset_rb
+    rb.loads(folder)
+    return rb
+
+
+def latest_checkpoint(run_dir: Path | str) -> Path:
+    """The newest complete (intact) checkpoint of ``run_dir``, ``checkpoints/step_<steps>``; a damaged newer one
+    is passed over, as a resume passes it over. A run folder without one: FileNotFoundError."""
+    run_dir = Path(run_dir)
+    run_config(run_dir)  # a clear error for a folder that is no run folder
+    checkpoint = Checkpoints(run_dir / "checkpoints").latest()
+    if checkpoint is None:
+        raise FileNotFoundError(f"{run_dir / 'checkpoints'} holds no complete checkpoint yet.")
+    return checkpoint
+
+
+def run_config(run_dir: Path | str) -> DictConfig:
+    """A run folder's ``config.yaml``: the configuration ``recipes/train.py`` ran it with, overrides applied (as
+    written: ``device`` and every other key as the run had them). A folder without one is no run folder:
+    FileNotFoundError."""
+    config = Path(run_dir) / "config.yaml"
+    if not config.exists():
+        raise FileNotFoundError(f"{run_dir} holds no config.yaml: is it a run folder of recipes/train.py?")
+    return OmegaConf.load(config)
+
+
+def run_table(run_dir: Path | str, name: str) -> list[dict[str, str]]:
+    """The rows of one of a run folder's CSV tables (``name``: ``progress.csv``, ``eval.csv``, ``resets.csv``,
+    ``triggers.csv`` or ``diagnostics.csv``), oldest first, each a dict of strings keyed by the table's header.
+    A table is written with its first row: none for one the run has not written yet (``triggers.csv`` before
+    the first trigger). A folder without ``config.yaml`` is no run folder: FileNotFoundError."""
+    run_dir = Path(run_dir)
+    run_config(run_dir)
+    if Path(name).name != name or not name.endswith(".csv"):
+        raise ValueError(f"name a table of the run folder by its file name (such as 'resets.csv'), got {name!r}")
+    path = run_dir / name
+    if not path.exists():
+        return []
+    with open(path, newline="") as f:
+        return list(csv.DictReader(f))
+
+
+def _checkpoint(run_dir: Path, checkpoint: Path | str | None, cfg: DictConfig) -> Path:
+    """The checkpoint folder ``checkpoint`` names (absolute, relative to the working directory, or to ``run_dir``),
+    checked as a resume checks one (:func:`_check`); None: the run's latest complete checkpoint."""
+    if checkpoint is None:
+        return latest_checkpoint(run_dir)
+    checkpoint = Path(checkpoint)
+    if not checkpoint.is_absolute() and not checkpoint.exists() and (run_dir / checkpoint).exists():
+        checkpoint = run_dir / checkpoint  # relative to the run folder
+    if checkpoint_step(checkpoint) is None or not (checkpoint / "state.pt").exists():
+        raise FileNotFoundError(f"{checkpoint} is not a complete checkpoint of a run (a step_<steps> folder "
+                                "holding state.pt).")
+    _check(checkpoint, run_dir, cfg)
+    return checkpoint
+
+
 def _check(checkpoint: Path, run_dir: Path, cfg: DictConfig) -> None:
     """A checkpoint named by hand is checked as a resume checks one: its files against its manifest
     (CheckpointDamaged), and its ``meta.json`` against the run's config (ValueError for another run's)."""
     if not (checkpoint / MANIFEST).exists() and not (checkpoint / "meta.json").exists():
         warnings.warn(f"{checkpoint} holds no manifest.json or meta.json (a state kept by older code): read unverified",
-                      stacklevel=3)
+                      stacklevel=4)  # the caller of load_agents / load_replay
         return
     problems = checkpoint_problems(checkpoint)
     if problems:

@@ -65,7 +65,7 @@ def episode(env, torques: np.ndarray) -> dict:
 
 
 def main(argv=None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--episodes", type=int, default=50)
     parser.add_argument("--steps", type=int, default=100)
     parser.add_argument("--out", type=Path, default=None, help="a CSV of every episode")

@@ -17,7 +17,7 @@ from stretches import markdown, stretches  # noqa: E402
 
 
 def main():
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--new", required=True, help="folder holding seed<k>/ of the runs at the release's settings")
     parser.add_argument("--old", required=True, help="folder holding seed<k>/ of the earlier runs")
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1])

@@ -41,14 +41,16 @@ from task_envs import make_task_env, task_dimensions  # noqa: E402
 from torchrl_reset import DualCollector, success_probability  # noqa: E402
 
 
-def config(overrides):
+def config(overrides, settings=()):
+    """The recipe's config for peg-insertion (insert) and ours, with ``settings`` (``--settings``), then the
+    probe's own ``overrides``."""
     with initialize_config_dir(config_dir=str(ROOT / "recipes" / "conf"), version_base="1.3"):
-        return compose("config", overrides=["task=peg_insertion_insert", "algo=ours", *overrides])
+        return compose("config", overrides=["task=peg_insertion_insert", "algo=ours", *settings, *overrides])
 
 
-def failed_reset_episodes(min_rows: int):
+def failed_reset_episodes(min_rows: int, settings=()):
     """Reset transitions of failed reset episodes (manual resets), by untrained policies with noise."""
-    cfg = config(["seed=0", "algo.threshold=1e-12"])  # a threshold nothing falls below: no trigger
+    cfg = config(["seed=0", "algo.threshold=1e-12"], settings)  # a threshold nothing falls below: no trigger
     torch.manual_seed(0)
     obs_dim, action_spec = task_dimensions(cfg)
     forward, reset = make_forward_agent(cfg, obs_dim, action_spec), make_reset_agent(cfg, obs_dim, action_spec)
@@ -73,13 +75,13 @@ def failed_reset_episodes(min_rows: int):
     return cfg, episodes, start, outcomes, forward
 
 
-def at_initialisation(episodes, seeds, rows=2000):
+def at_initialisation(episodes, seeds, rows=2000, settings=()):
     """Untrained agents, each draw and seed: the minimum-over-members label (what every member trains on)
     and the trigger's score on ``rows`` replay rows of the failed reset episodes."""
     out = []
     for draw in ("fan_in", "xavier"):
         for seed in range(seeds):
-            run_cfg = config([f"seed={seed}", f"algo.prior_bias_draw={draw}"])
+            run_cfg = config([f"seed={seed}", f"algo.prior_bias_draw={draw}"], settings)
             torch.manual_seed(seed)
             obs_dim, action_spec = task_dimensions(run_cfg)
             agent = make_reset_agent(run_cfg, obs_dim, action_spec)
@@ -99,8 +101,8 @@ REPLAY_KEYS = ["observation", "action", ("next", "observation"), ("next", "done"
                ("next", "terminated"), ("collector", "traj_ids")]
 
 
-def train_and_watch(cfg, episodes, examples, forward_actor, seed, draw, updates, every, targets):
-    run_cfg = config([f"seed={seed}", f"algo.prior_bias_draw={draw}", f"target_init={targets}"])
+def train_and_watch(cfg, episodes, examples, forward_actor, seed, draw, updates, every, targets, settings=()):
+    run_cfg = config([f"seed={seed}", f"algo.prior_bias_draw={draw}", f"target_init={targets}"], settings)
     torch.manual_seed(seed)
     obs_dim, action_spec = task_dimensions(run_cfg)
     agent = make_reset_agent(run_cfg, obs_dim, action_spec)
@@ -134,7 +136,7 @@ def train_and_watch(cfg, episodes, examples, forward_actor, seed, draw, updates,
 
 
 def main():
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     parser.add_argument("--updates", type=int, default=500)
     parser.add_argument("--every", type=int, default=25)
@@ -143,13 +145,18 @@ def main():
     parser.add_argument("--targets", choices=["release", "copy"], default="release",
                         help="how the target classifiers start (the recipe's target_init)")
     parser.add_argument("--out", default=None, help="CSV of every recorded row")
+    parser.add_argument("--settings", nargs="+", default=[], metavar="KEY=VALUE",
+                        help="further config overrides (Hydra's syntax) for the data and every agent, e.g. "
+                             "hidden_sizes=[16,16] task.forward_horizon=20 for a small try (default: none, the "
+                             "recipe's paper settings); not the keys the probe sets itself (seed, "
+                             "algo.prior_bias_draw, target_init, algo.threshold)")
     args = parser.parse_args()
     torch.set_num_threads(2)
-    cfg, episodes, examples, outcomes, forward = failed_reset_episodes(args.rows)
+    cfg, episodes, examples, outcomes, forward = failed_reset_episodes(args.rows, args.settings)
     print(f"data: {sum(len(e) for e in episodes)} transitions of {len(episodes)} failed reset episodes "
           f"(reset outcomes while collecting: {outcomes}); {len(examples)} success examples (the start state)")
     if args.init_seeds:
-        init = at_initialisation(episodes, args.init_seeds)
+        init = at_initialisation(episodes, args.init_seeds, settings=args.settings)
         for draw in ("fan_in", "xavier"):
             mine = [r for r in init if r["draw"] == draw]
             mean = lambda key: sum(r[key] for r in mine) / len(mine)  # noqa: E731
@@ -167,7 +174,7 @@ def main():
     for seed in args.seeds:
         for draw in ("fan_in", "xavier"):
             trace = train_and_watch(cfg, episodes, examples, forward.actor, seed, draw, args.updates, args.every,
-                                    args.targets)
+                                    args.targets, args.settings)
             rows += trace
             below = [r["updates"] for r in trace if r["replay_score_mean"] < float(cfg.task.p_thresh)]
             print(f"seed {seed} {draw:>6}: replay score {trace[0]['replay_score_mean']:.3f} at 0 -> "

@@ -22,7 +22,6 @@ reset check (one step from success: those should stay high).
 """
 import argparse
 import csv
-import json
 import sys
 from pathlib import Path
 
@@ -34,6 +33,7 @@ ROOT = Path(__file__).resolve().parents[3]
 sys.path.insert(0, str(ROOT / "recipes"))
 from agents import make_reset_agent  # noqa: E402
 from reset_agents import reset_kind  # noqa: E402
+from saved_runs import load_replay, run_table  # noqa: E402
 from task_envs import task_dimensions  # noqa: E402
 from train import update  # noqa: E402
 
@@ -46,18 +46,20 @@ def config(overrides):
 def rows_at(checkpoint: Path, upto: int) -> tuple[TensorDict, TensorDict, int, int]:
     """The forward and reset replay rows the run had written by ``upto`` steps."""
     run = checkpoint.parents[1]
-    with open(run / "progress.csv", newline="") as f:
-        row = next((r for r in csv.DictReader(f) if int(r["frames"]) == upto), None)
+    row = next((r for r in run_table(run, "progress.csv") if int(r["frames"]) == upto), None)
     if row is None:
         raise SystemExit(f"{run}/progress.csv has no row at {upto} steps")
     forward_rows, reset_rows = int(row["forward_steps"]), int(row["reset_steps"])
     data = []
-    for name, count in (("forward_buffer", forward_rows), ("reset_buffer", reset_rows)):
-        storage = TensorDict.load_memmap(checkpoint / name / "storage")
-        written = json.loads((checkpoint / name / "writer" / "metadata.json").read_text())["write_count"]
-        if written < count:
-            raise SystemExit(f"{checkpoint / name} holds {written} rows, fewer than the {count} written by {upto}")
-        data.append(storage[:count].clone())
+    for agent, count in (("forward", forward_rows), ("reset", reset_rows)):
+        rb = load_replay(run, agent, checkpoint=checkpoint)
+        if rb.write_count < count:
+            raise SystemExit(f"{checkpoint / f'{agent}_buffer'} holds {rb.write_count} rows, fewer than the {count} "
+                             f"written by {upto}")
+        if rb.write_count > rb.storage.max_size:
+            raise SystemExit(f"{checkpoint / f'{agent}_buffer'} was filled ({rb.write_count} rows written into "
+                             f"{rb.storage.max_size}): its first rows are no longer those written first")
+        data.append(rb.storage[:count].clone())
     return data[0], data[1], forward_rows, reset_rows
 
 
@@ -100,8 +102,8 @@ def train_and_watch(forward, replay, seed, scale, updates, every, batch_size=256
 
 
 def main():
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("checkpoint", type=Path, help="an LNT-sparse run's checkpoint folder")
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("checkpoint", type=Path, help="an LNT-sparse run's checkpoint folder (run/checkpoints/step_*)")
     parser.add_argument("--upto", type=int, default=25000, help="the rows the run had written by this step")
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1])
     parser.add_argument("--scales", type=float, nargs="+", default=[0.0, 3.0], help="algo.prior_scale values")

@@ -22,20 +22,18 @@ from collections import Counter
 from pathlib import Path
 
 import torch
-from omegaconf import OmegaConf
 from tensordict import TensorDict
 
 ROOT = Path(__file__).resolve().parents[3]
 sys.path.insert(0, str(ROOT / "recipes"))
 
 from run_files import checkpoint_step  # noqa: E402
-from saved_runs import load_agents  # noqa: E402
-from stretches import csv_rows  # noqa: E402
+from saved_runs import load_agents, run_config, run_table  # noqa: E402
 
 
 def fixed_states(run: Path, count: int) -> torch.Tensor:
     """``count`` trigger states drawn evenly over the run's ``triggers.csv`` (all of them if fewer)."""
-    rows = csv_rows(run / "triggers.csv")
+    rows = run_table(run, "triggers.csv")
     if not rows:
         raise SystemExit(f"{run} has no trigger states (triggers.csv is empty or absent)")
     picks = range(len(rows)) if count >= len(rows) else [i * len(rows) // count for i in range(count)]
@@ -44,7 +42,7 @@ def fixed_states(run: Path, count: int) -> torch.Tensor:
 
 def success_by_stretch(run: Path, steps: list[int], first: int) -> list[tuple[int, int]]:
     """(successful, ended) reset episodes in each stretch (previous step, step], the first from ``first``."""
-    resets = [(int(r["frames"]), r["outcome"] == "success") for r in csv_rows(run / "resets.csv")]
+    resets = [(int(r["frames"]), r["outcome"] == "success") for r in run_table(run, "resets.csv")]
     out, before = [], first
     for step in steps:
         here = [ok for frames, ok in resets if before < frames <= step]
@@ -65,7 +63,7 @@ def saturation(actor, states: torch.Tensor) -> dict:
 
 
 def main(argv=None) -> list[dict]:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("run", type=Path, help="a run folder written by recipes/train.py")
     parser.add_argument("--checkpoints", type=Path, default=None,
                         help="a folder of step_*/state.pt (default: the run's checkpoints/kept, else its checkpoints)")
@@ -83,7 +81,7 @@ def main(argv=None) -> list[dict]:
         raise SystemExit(f"{folder} holds no step_*/state.pt")
     states = fixed_states(args.run, args.states)
     # the first stretch as long as those between the states found (kept every so many steps, or checkpoints)
-    every = found[1][0] - found[0][0] if len(found) > 1 else int(OmegaConf.load(args.run / "config.yaml").checkpoint_every)
+    every = found[1][0] - found[0][0] if len(found) > 1 else int(run_config(args.run).checkpoint_every)
     successes = success_by_stretch(args.run, [s for s, _ in found], first=max(0, found[0][0] - every))
     print(f"{args.run}: {len(found)} checkpoints, {len(states)} fixed trigger states")
     print("step | median |pre-tanh| per motor | |a| > 0.99 | corners | most common corner (share) | resets since the last checkpoint: successful / ended")

@@ -28,17 +28,16 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from omegaconf import OmegaConf
 from tensordict import TensorDict
+
+from torchrl_reset_envs import make_gym_env
 
 ROOT = Path(__file__).resolve().parents[3]
 sys.path.insert(0, str(ROOT / "recipes"))
-sys.path.insert(0, str(ROOT))
 
 from config_checks import reset_horizon  # noqa: E402
-from saved_runs import load_agents  # noqa: E402
-from stretches import csv_rows, resets_by_start  # noqa: E402
-from envs.tasks import make_gym_env  # noqa: E402
+from saved_runs import load_agents, run_config, run_table  # noqa: E402
+from stretches import resets_by_start  # noqa: E402
 
 
 def wrapped(angle: float) -> float:
@@ -70,22 +69,26 @@ def replay(env, actor, qpos, qvel, *, horizon: int, min_steps: int, noise: dict 
 
 
 def main(argv=None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("run", type=Path)
-    parser.add_argument("--states", type=int, default=120)
-    parser.add_argument("--seed", type=int, default=0)
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("run", type=Path, help="a cliff-cheetah run folder written by recipes/train.py")
+    parser.add_argument("--states", type=int, default=120, help="the latest trigger states to replay from")
+    parser.add_argument("--seed", type=int, default=0, help="the exploration noise's and the env's seed")
     parser.add_argument("--checkpoint", type=Path, default=None,
                         help="a checkpoint folder of the run (default: its latest); trigger states up to its step")
     args = parser.parse_args(argv)
-    task = OmegaConf.load(args.run / "config.yaml").task.name
+    if args.states < 1:
+        parser.error("--states must be positive")
+    task = run_config(args.run).task.name
     if task != "cliff_cheetah":
         raise SystemExit(f"{args.run} is a {task} run; this probe reads cliff-cheetah states")
     saved = load_agents(args.run, checkpoint=args.checkpoint, agents=("reset",))
     cfg, latest, step = saved.cfg, saved.checkpoint, saved.step
     actor = saved.reset.actor.eval()
-    triggers = [t for t in csv_rows(args.run / "triggers.csv") if int(t["frames"]) <= step]
+    triggers = [t for t in run_table(args.run, "triggers.csv") if int(t["frames"]) <= step]
     logged = {start: r["outcome"] for start, r in resets_by_start(args.run).items()}
     chosen = triggers[-args.states:]
+    if not chosen:
+        raise SystemExit(f"{args.run} logged no trigger up to its checkpoint {latest.name}: no trigger state to replay")
     env = make_gym_env("cliff_cheetah")
     nq = env.model.nq
     noise = {k: float(cfg.exploration[k]) for k in ("theta", "sigma", "dt")}

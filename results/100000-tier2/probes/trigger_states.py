@@ -10,13 +10,15 @@ reset episode that followed it (paired by its start, ``frames - steps``): |pitch
 """
 from __future__ import annotations
 
+import argparse
 import math
 import statistics
 import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[3] / "recipes"))
-from stretches import csv_rows, keyed_by_start  # noqa: E402
+from saved_runs import run_table  # noqa: E402
+from stretches import keyed_by_start  # noqa: E402
 
 NQ = 9  # cliff-cheetah: qpos (9) then qvel (9)
 
@@ -28,9 +30,12 @@ def quartiles(values) -> str:
     return " / ".join(f"{v:.2f}" for v in statistics.quantiles(values, n=4))
 
 
-def main(runs) -> None:
-    for run in map(Path, runs):
-        resets, triggers = csv_rows(run / "resets.csv"), csv_rows(run / "triggers.csv")
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("runs", type=Path, nargs="+", help="cliff-cheetah run folders written by recipes/train.py")
+    args = parser.parse_args(argv)
+    for run in args.runs:
+        resets, triggers = run_table(run, "resets.csv"), run_table(run, "triggers.csv")
         print(f"{run} (to frame {resets[-1]['frames'] if resets else 0})")
         for outcome in ("success", "manual"):
             chosen = [int(r["steps"]) for r in resets if r["outcome"] == outcome]
@@ -49,4 +54,4 @@ def main(runs) -> None:
 
 
 if __name__ == "__main__":
-    main(sys.argv[1:])
+    main()

@@ -9,28 +9,26 @@ the trigger compares with Q_thresh), the spread between members, each member's m
 member's TD(0) target and error as the update computes them. The shaped
 reset reward lies in [0, 1], so every true value lies in [0, 1 / (1 - gamma)] = [0, 100].
 """
+import argparse
 import sys
 from pathlib import Path
 
 import torch
-from omegaconf import OmegaConf
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[3] / "recipes"))
 from reset_agents import lnt_batch  # noqa: E402
-from buffers import make_buffers  # noqa: E402
-from saved_runs import load_agents  # noqa: E402
+from saved_runs import load_agents, load_replay, run_config  # noqa: E402
 
 
 def main(run: str, step: int, csv_path: str | None = None, rows: int = 4096) -> None:
     torch.set_num_threads(1)
-    cfg = OmegaConf.load(Path(run) / "config.yaml")
+    cfg = run_config(run)
     if cfg.algo.name not in ("lnt", "lnt_sparse"):
         raise SystemExit(f"{run} is an {cfg.algo.name} run; this probe reads LNT's Q-ensemble.")
     folder = Path(run) / "checkpoints" / f"step_{step:010d}"
     saved = load_agents(run, checkpoint=folder)
     cfg, agent = saved.cfg, saved.reset
-    _, replay = make_buffers(cfg)
-    replay.loads(folder / "reset_buffer")
+    replay = load_replay(run, "reset", checkpoint=folder)
     held = len(replay)
     print(f"{run} at step {step}: {held} reset replay rows, {cfg.algo.num_members} members, "
           f"reward {cfg.algo.reset_reward}, Q_thresh {cfg.algo.threshold}")
@@ -76,7 +74,14 @@ def main(run: str, step: int, csv_path: str | None = None, rows: int = 4096) -> 
             out.write(",".join(f"{v:.4g}" if isinstance(v, float) else str(v) for v in summary.values()) + "\n")
 
 
+def command_line(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("run", help="an LNT or LNT-sparse run folder written by recipes/train.py")
+    parser.add_argument("step", type=int, help="the step of its checkpoint to read (checkpoints/step_<step>)")
+    parser.add_argument("--csv", default=None, help="also appends one row of the summary to this CSV (a series)")
+    args = parser.parse_args(argv)
+    main(args.run, args.step, args.csv)
+
+
 if __name__ == "__main__":
-    if len(sys.argv) not in (3, 5) or (len(sys.argv) == 5 and sys.argv[3] != "--csv"):
-        raise SystemExit("usage: lnt_critics.py <run folder> <checkpoint step> [--csv <file>]")
-    main(sys.argv[1], int(sys.argv[2]), sys.argv[4] if len(sys.argv) == 5 else None)
+    command_line()

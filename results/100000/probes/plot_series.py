@@ -8,8 +8,8 @@ minimum over members that the trigger compares with Q_thresh) against [0, 100], 
 value lies (rewards in [0, 1], gamma = 0.99), and the share of replay rows the trigger would cut
 (minimum over members below Q_thresh).
 """
+import argparse
 import csv
-import sys
 from pathlib import Path
 
 import matplotlib
@@ -50,8 +50,13 @@ def plot(path: Path, upper: float = 100.0) -> Path:
     return out
 
 
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("series", type=Path, nargs="+", help="CSV files written by lnt_critics.py --csv")
+    args = parser.parse_args(argv)
+    for path in args.series:
+        print(plot(path))
+
+
 if __name__ == "__main__":
-    if len(sys.argv) < 2:
-        raise SystemExit("usage: plot_series.py <series csv> [...]")
-    for name in sys.argv[1:]:
-        print(plot(Path(name)))
+    main()

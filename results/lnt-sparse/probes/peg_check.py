@@ -20,7 +20,7 @@ it, the denser that "sparse" reward is. This probe measures, on the task's own m
 from __future__ import annotations
 
 import argparse
-import csv
+import sys
 from pathlib import Path
 
 import mujoco
@@ -28,6 +28,9 @@ import numpy as np
 
 from torchrl_reset_envs import PegInsertionEnv
 from torchrl_reset_envs.peg import PEG_GOAL, PEG_START, _RANGES
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[3] / "recipes"))
+from saved_runs import run_table  # noqa: E402
 
 CHECK = 0.2  # insert task: at the initial state when d_start < 0.2
 
@@ -94,11 +97,9 @@ def main(argv=None) -> None:
     if args.runs:
         print("3. trigger states of the runs (the forward episode's state the trigger stopped)")
     for folder in args.runs:
-        path = folder / "triggers.csv"
-        if not path.exists():
+        if not (folder / "triggers.csv").exists():
             continue
-        with open(path, newline="") as f:
-            states = [np.array(r["observation"].split(), dtype=float) for r in csv.DictReader(f)]
+        states = [np.array(r["observation"].split(), dtype=float) for r in run_table(folder, "triggers.csv")]
         if not states:
             print(f"   {folder}: no trigger")
             continue

@@ -108,7 +108,7 @@ def measure(run) -> dict:
 
 
 def main(argv=None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--seeds", type=int, nargs="+", default=[1, 0])
     parser.add_argument("--steps", type=int, default=750)
     parser.add_argument("--updates", type=int, default=500)

@@ -19,21 +19,19 @@ import torch
 
 ROOT = Path(__file__).resolve().parents[3]
 sys.path.insert(0, str(ROOT / "recipes"))
-from buffers import make_buffers  # noqa: E402
 from run_files import Checkpoints  # noqa: E402
-from saved_runs import load_agents  # noqa: E402
+from saved_runs import latest_checkpoint, load_agents, load_replay  # noqa: E402
 
 from torchrl_reset import EnsembleValueOperator  # noqa: E402
 
 
 def probe(run: Path, rows: int, folder: Path | None = None, brief: bool = False) -> None:
-    folder = Checkpoints(run / "checkpoints").folders()[0] if folder is None else folder
+    folder = latest_checkpoint(run) if folder is None else folder
     torch.manual_seed(0)
     # the reference ensemble: its trained and prior parts can be read apart
-    saved = load_agents(run, checkpoint=folder, overrides={"speed.accelerate": False})
-    cfg, agent = saved.cfg, saved.reset
-    _, replay = make_buffers(cfg)
-    replay.loads(folder / "reset_buffer")
+    saved = load_agents(run, checkpoint=folder, overrides={"speed.accelerate": False}, agents=("reset",))
+    agent = saved.reset
+    replay = load_replay(run, "reset", checkpoint=folder)
     states = replay[:][-rows:].select("observation")
     model: EnsembleValueOperator = agent.model
     with torch.no_grad():
@@ -70,9 +68,9 @@ def probe(run: Path, rows: int, folder: Path | None = None, brief: bool = False)
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("runs", nargs="+", type=Path)
-    parser.add_argument("--rows", type=int, default=2000)
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("runs", nargs="+", type=Path, help="run folders of ours written by recipes/train.py")
+    parser.add_argument("--rows", type=int, default=2000, help="the newest reset replay rows to read")
     parser.add_argument("--every-checkpoint", action="store_true",
                         help="one short line per checkpoint kept, oldest first (the actor's saturation over time)")
     args = parser.parse_args()

@@ -11,26 +11,22 @@ import argparse
 import sys
 from pathlib import Path
 
-from omegaconf import OmegaConf
-
 ROOT = Path(__file__).resolve().parents[3]
 sys.path.insert(0, str(ROOT / "recipes"))
-from buffers import make_buffers  # noqa: E402
-from run_files import Checkpoints  # noqa: E402
+from saved_runs import latest_checkpoint, load_replay  # noqa: E402
 
 
 def reset_actions(run: Path, last: int):
-    cfg = OmegaConf.load(run / "config.yaml")
-    folder = Checkpoints(run / "checkpoints").folders()[0]  # newest first
-    _, reset_rb = make_buffers(cfg)
-    reset_rb.loads(folder / "reset_buffer")
+    """The newest checkpoint's name and the last ``last`` actions of its reset replay buffer."""
+    folder = latest_checkpoint(run)
+    reset_rb = load_replay(run, "reset", checkpoint=folder)
     return folder.name, reset_rb[:]["action"][-last:]
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("runs", nargs="+", type=Path)
-    parser.add_argument("--last", type=int, default=2000)
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("runs", nargs="+", type=Path, help="run folders written by recipes/train.py")
+    parser.add_argument("--last", type=int, default=2000, help="the newest reset actions to read")
     args = parser.parse_args()
     for run in args.runs:
         step, a = reset_actions(run, args.last)

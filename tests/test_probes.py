@@ -1,0 +1,274 @@
+"""The analysis probes (``results/*/probes/*.py``): every one answers ``--help``, and every one runs on tiny run
+folders, made once per session by the recipe, and prints what it should. Also the run-folder readers of
+``recipes/saved_runs.py`` the probes use (the config, the CSV tables, the replay buffers)."""
+from __future__ import annotations
+
+import ast
+import os
+import re
+import runpy
+import shutil
+import subprocess
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+import pytest
+from hydra import compose, initialize_config_dir
+
+ROOT = Path(__file__).resolve().parents[1]
+RECIPES = ROOT / "recipes"
+sys.path.insert(0, str(RECIPES))
+
+import train  # noqa: E402
+from saved_runs import latest_checkpoint, load_replay, run_config, run_table  # noqa: E402
+
+#: every probe in the repository, found anew at each collection: a probe added later is tested as well
+PROBES = sorted((ROOT / "results").glob("*/probes/*.py"))
+
+#: a few hundred steps of small networks, both agents updating (heat-up 40), checkpoints and kept states at
+#: 100 and 200 steps; one thread: on a busy machine the runs take a few seconds each
+TINY = [
+    "hidden_sizes=[16,16]", "heat_up=40", "task.forward_horizon=20", "forward.batch_size=16", "reset.batch_size=16",
+    "forward.buffer_size=2000", "reset.buffer_size=2000", "total_steps=200", "log_every=50", "eval_every=200",
+    "checkpoint_every=100", "keep_states_every=100", "threads=1", "progress_bar=false", "speed.compile=[]",
+]
+STEPS = 200
+
+
+@dataclass(frozen=True)
+class Runs:
+    """The session's run folders (``root/<task>/<algo>/seed0``, as the recipe names them)."""
+
+    root: Path
+    cliff: Path  # cliff-cheetah, ours: the reset agent's classifiers; its trigger set high, so that it fires
+    peg: Path  # peg-insertion (insert), LNT-sparse with 3 Q-functions
+
+
+def _train(root: Path, task: str, algo: str, *overrides: str) -> Path:
+    run_dir = root / task / algo / "seed0"
+    with initialize_config_dir(config_dir=str(RECIPES / "conf"), version_base="1.3"):
+        cfg = compose(config_name="config", overrides=[*TINY, f"task={task}", f"algo={algo}", f"run_dir={run_dir}",
+                                                       *overrides])
+    summary = train.train(cfg)
+    assert summary["finished"] and summary["steps"] == STEPS
+    return run_dir
+
+
+@pytest.fixture(scope="session")
+def runs(tmp_path_factory) -> Runs:
+    root = tmp_path_factory.mktemp("runs")
+    made = Runs(root, cliff=_train(root, "cliff_cheetah", "ours", "algo.threshold=0.5"),
+                peg=_train(root, "peg_insertion_insert", "lnt_sparse", "algo.num_members=3"))
+    for run in (made.cliff, made.peg):  # several probes start from the trigger states
+        if not run_table(run, "triggers.csv"):
+            pytest.fail(f"{run} logged no trigger in {STEPS} steps: the probes of trigger states have nothing to read")
+    return made
+
+
+@dataclass(frozen=True)
+class ProbeRun:
+    """How the test runs one probe: its arguments (given the session's runs and the test's own folder), lines
+    its output must hold (regular expressions, searched line by line), and a check of the files it wrote."""
+
+    args: Callable[[Runs, Path], list]
+    prints: tuple[str, ...]
+    wrote: Callable[[Runs, Path], None] | None = None
+    timeout: int = 180
+
+
+def _series_csv_matches_the_committed_ones(runs: Runs, out: Path) -> None:
+    """lnt_critics.py's --csv rows, as plot_series.py reads them (the committed series' header)."""
+    written = (out / "series.csv").read_text().splitlines()
+    committed = (ROOT / "results" / "100000" / "probes" / "series_lnt_seed2.csv").read_text().splitlines()
+    assert len(written) == 2 and written[0] == committed[0] and written[1].startswith(f"{STEPS},")
+
+
+def _copy_of_a_committed_series(runs: Runs, out: Path) -> list:
+    """plot_series.py writes its PNG beside the CSV: a copy in the test's folder, not the committed file."""
+    shutil.copy(ROOT / "results" / "100000" / "probes" / "series_lnt_seed2.csv", out)
+    return [out / "series_lnt_seed2.csv"]
+
+
+def _exists(*names: str) -> Callable[[Runs, Path], None]:
+    def check(runs: Runs, out: Path) -> None:
+        missing = [name for name in names if not (out / name).is_file()]
+        assert not missing, f"not written: {missing}"
+    return check
+
+
+#: each probe's arguments on the session's runs, kept small (few states, episodes and updates), and lines it prints
+PROBE_RUNS: dict[str, ProbeRun] = {
+    "100000/probes/lnt_critics.py": ProbeRun(
+        lambda r, out: [r.peg, str(STEPS), "--csv", out / "series.csv"],
+        (rf"at step {STEPS}: \d+ reset replay rows, 3 members, reward sparse, Q_thresh 0.1$",
+         r"^uniform: reward mean", r"^  Q\(s, pi_r\(s\)\): mean .*members outside \[0, 100\]: \d+ of 3$",
+         r"^  TD\(0\) error \(rms\), members: \S+ \S+ \S+$"),
+        wrote=_series_csv_matches_the_committed_ones),
+    "100000/probes/plot_series.py": ProbeRun(
+        _copy_of_a_committed_series, (r"series_lnt_seed2\.png$",), wrote=_exists("series_lnt_seed2.png")),
+    "100000-release/probes/arm_reach.py": ProbeRun(
+        lambda r, out: ["--episodes", "2", "--steps", "10", "--out", out / "arm_reach.csv"],
+        (r"^2 episodes of 10 steps from the insert task's start$", r"^\| tier 1 \| noise \|",
+         r"^\| release \| policy \+ noise \|"),
+        wrote=_exists("arm_reach.csv")),
+    "100000-release/probes/compare.py": ProbeRun(
+        lambda r, out: ["--new", r.cliff.parent, "--old", r.cliff.parent, "--seeds", "0", "--upto", str(STEPS),
+                        "--window", "100"],
+        (r"^seed 0, release's settings \(", r"^seed 0, before \(", r"^\| 100-200 \| \d+ \|")),
+    "100000-release/probes/offline_classifier.py": ProbeRun(
+        lambda r, out: ["--seeds", "0", "--updates", "2", "--every", "1", "--rows", "40", "--init-seeds", "1",
+                        "--out", out / "offline.csv", "--settings", "hidden_sizes=[16,16]", "task.forward_horizon=20",
+                        "reset.buffer_size=2000", "reset.batch_size=16", "algo.num_members=2"],
+        (r"^data: \d+ transitions of \d+ failed reset episodes", r"^untrained, xavier, 1 seeds x 2000 rows",
+         r"^seed 0 fan_in: replay score [\d.]+ at 0 -> [\d.]+ at 2", r"^seed 0 xavier: replay score"),
+        wrote=_exists("offline.csv", "offline_init.csv")),
+    "100000-release/probes/offline_lnt_ensemble.py": ProbeRun(
+        lambda r, out: [r.peg / "checkpoints" / f"step_{STEPS:010d}", "--upto", "100", "--seeds", "0", "--scales", "0",
+                        "3", "--updates", "2", "--every", "1", "--out", out / "ensemble.csv"],
+        (r"^data at 100 steps: \d+ forward rows, \d+ reset rows \(\d+ one step from success\)$",
+         r"^seed 0 prior_scale 0 at +0 updates: forward rows' minimum", r"^seed 0 prior_scale 3 at +2 updates"),
+        wrote=_exists("ensemble.csv")),
+    "100000-tier2/probes/actor_saturation.py": ProbeRun(
+        lambda r, out: [r.cliff, "--states", "5", "--out", out / "saturation"],
+        (r": 2 checkpoints, \d+ fixed trigger states$", r"^100 \| ", rf"^{STEPS} \| .* \| \d+ / \d+$", r"^wrote "),
+        wrote=_exists("saturation.csv", "saturation.png")),
+    "100000-tier2/probes/reset_failures.py": ProbeRun(
+        lambda r, out: [r.cliff, "--states", "2"],
+        (rf": checkpoint step_{STEPS:010d}; \d trigger states from frames", r"^reset actor on these states: ",
+         r"^held from the start state for 200 steps, no torque: \d+ steps pass the check",
+         r"^greedy: success \d+, flipped \d+, away \d+, near \d+", r"^noisy : success \d+",
+         r"^logged outcome of the reset that followed these triggers in training: ")),
+    "100000-tier2/probes/trigger_states.py": ProbeRun(
+        lambda r, out: [r.cliff],
+        (r"^  reset episodes, success: \d+, [\d,]+ steps$", r"^  triggers: \d+; within the first 2 forward steps: ",
+         r"^  before a reset that ended in manual \(\d+\): \|pitch\| quartiles")),
+    "lnt-sparse/probes/peg_check.py": ProbeRun(
+        lambda r, out: ["--episodes", "2", "--samples", "20", "--runs", r.peg],
+        (r"^1\. the check against the task$", r"^   d_start between the start and the goal: 0\.927",
+         r"^   one corner of the action box held: end inside the check", r"^3\. trigger states of the runs",
+         r"seed0: \d+ triggers, \d+% already inside the check")),
+    "quick-ball-in-cup/probes/example_action.py": ProbeRun(
+        lambda r, out: ["--seeds", "0", "--steps", "150", "--updates", "2", "--every", "1"],
+        (r"^seed 0, from its checkpoint at 150 steps, 2 more reset updates$", r"^\| variant \| updates \| mean action",
+         r"^\| pi\(s\*\) \| 0 \|", r"^\| uniform and shuffled \| 2 \|")),
+    "quick-ball-in-cup/probes/min_member.py": ProbeRun(
+        lambda r, out: [r.cliff, "--rows", "50"],
+        (rf"\(step_{STEPS:010d}, 50 states\): the minimum member (\d+%, ){{4}}\d+% of rows \(members 0-4\)",
+         r"^  d\(min logit\)/da, trained part df/da: mean", r"^  where \|a\| > 0.9, pointing further out of the box")),
+    "quick-ball-in-cup/probes/reset_actions.py": ProbeRun(
+        lambda r, out: [r.cliff, "--last", "50"],
+        (rf"\(step_{STEPS:010d}, last 50 reset actions\): mean \|a\| [\d.]+; outside \[-1, 1\] \d+%",)),
+}
+
+
+def _name(probe: Path) -> str:
+    return probe.relative_to(ROOT / "results").as_posix()
+
+
+def _history_has(commit: str) -> bool:
+    return subprocess.run(["git", "-C", str(ROOT), "cat-file", "-e", commit], capture_output=True).returncode == 0
+
+
+def test_the_probes_are_found():
+    assert len(PROBES) >= 13 and all(p.parent.name == "probes" for p in PROBES)
+
+
+def test_every_entry_of_the_table_names_a_probe():
+    stale = sorted(set(PROBE_RUNS) - {_name(p) for p in PROBES})
+    assert not stale, f"PROBE_RUNS names probes that are not in results/*/probes/: {stale}"
+
+
+@pytest.mark.parametrize("probe", PROBES, ids=_name)
+def test_every_probe_answers_help(probe, monkeypatch, capsys):
+    """``python <probe> --help`` (run in this process: it exits before the probe does any work): usage, and the
+    module docstring as its description."""
+    doc = ast.get_docstring(ast.parse(probe.read_text()))
+    assert doc, f"{_name(probe)} has no module docstring to describe it"
+    monkeypatch.setattr(sys, "argv", [str(probe), "--help"])
+    monkeypatch.setattr(sys, "path", list(sys.path))  # what the probe adds to it goes with the test
+    try:
+        runpy.run_path(str(probe), run_name="__main__")
+    except SystemExit as exited:
+        code = exited.code
+    else:
+        pytest.fail(f"{_name(probe)} --help did not stop at its usage: it ran (on an argument named --help)")
+    out = capsys.readouterr().out
+    assert code in (0, None), f"{_name(probe)} --help exited with {code!r}"
+    assert out.startswith("usage: ") and "--help" in out, f"{_name(probe)} --help printed no usage:\n{out}"
+    first_line = " ".join(doc.splitlines()[0].split())
+    assert first_line in " ".join(out.split()), f"{_name(probe)} --help does not describe it by its docstring"
+
+
+@pytest.mark.parametrize("probe", PROBES, ids=_name)
+def test_every_probe_runs_on_a_run_folder(probe, request, tmp_path):
+    name = _name(probe)
+    if name not in PROBE_RUNS:
+        pytest.fail(f"{name} has no entry in PROBE_RUNS (tests/test_probes.py): add the arguments that run it, small, "
+                    "on the session's run folders and lines its output must hold")
+    if name == "100000-release/probes/arm_reach.py" and not _history_has("d7b4986~1"):
+        pytest.skip("arm_reach.py builds tier 1's arm from the repository's history (commit d7b4986), absent here")
+    entry = PROBE_RUNS[name]
+    runs = request.getfixturevalue("runs")  # made once, on the first probe that has an entry
+    args = [str(a) for a in entry.args(runs, tmp_path)]
+    # the working directory the results' READMEs run them from; temporary folders (example_action's runs) in tmp_path
+    done = subprocess.run([sys.executable, str(probe), *args], cwd=ROOT, capture_output=True, text=True,
+                          timeout=entry.timeout, env={**os.environ, "TMPDIR": str(tmp_path)})
+    assert done.returncode == 0, (f"{name} {' '.join(args)} exited with {done.returncode}:\n"
+                                  f"{done.stdout[-3000:]}\n{done.stderr[-3000:]}")
+    lines = done.stdout.splitlines()
+    missing = [pattern for pattern in entry.prints if not any(re.search(pattern, line) for line in lines)]
+    assert not missing, f"{name} printed no line matching {missing}:\n{done.stdout[-3000:]}"
+    if entry.wrote is not None:
+        entry.wrote(runs, tmp_path)
+
+
+# the run-folder readers of recipes/saved_runs.py
+
+
+def test_run_config_reads_a_run_folders_config(runs, tmp_path):
+    cfg = run_config(runs.cliff)
+    assert (cfg.task.name, cfg.algo.name, cfg.total_steps, list(cfg.hidden_sizes)) == ("cliff_cheetah", "ours", STEPS,
+                                                                                       [16, 16])
+    with pytest.raises(FileNotFoundError, match="holds no config.yaml"):
+        run_config(tmp_path)
+
+
+def test_run_table_reads_a_run_folders_csv_tables(runs, tmp_path):
+    progress = run_table(runs.peg, "progress.csv")
+    assert [row["frames"] for row in progress] == ["50", "100", "150", "200"]
+    assert int(progress[-1]["forward_steps"]) + int(progress[-1]["reset_steps"]) == STEPS
+    triggers = run_table(runs.cliff, "triggers.csv")
+    assert triggers and all(len(row["observation"].split()) == 18 for row in triggers)  # cliff-cheetah: qpos, qvel
+    assert {row["outcome"] for row in run_table(runs.cliff, "resets.csv")} <= {"success", "manual"}
+    # a table the run has not written yet (triggers.csv before the first trigger) has no rows
+    shutil.copy(runs.cliff / "config.yaml", tmp_path / "config.yaml")
+    assert run_table(tmp_path, "triggers.csv") == []
+    for bad in ("resets", "../resets.csv", "checkpoints/latest"):
+        with pytest.raises(ValueError, match="by its file name"):
+            run_table(runs.cliff, bad)
+    with pytest.raises(FileNotFoundError, match="holds no config.yaml"):
+        run_table(tmp_path / "nothing", "resets.csv")
+
+
+def test_load_replay_reads_a_checkpoints_replay_buffers(runs, tmp_path):
+    progress = {int(row["frames"]): row for row in run_table(runs.peg, "progress.csv")}
+    # every step a phase took is in its buffer: the latest checkpoint's, then one named relative to the run folder
+    for step, checkpoint in ((STEPS, None), (100, "checkpoints/step_0000000100")):
+        for agent in ("forward", "reset"):
+            rb = load_replay(runs.peg, agent, checkpoint=checkpoint)
+            assert len(rb) == rb.write_count == int(progress[step][f"{agent}_steps"])
+    assert latest_checkpoint(runs.peg).name == f"step_{STEPS:010d}"
+    # ours' reset buffer: its rows with the n-step state its transform writes beside them
+    rows = load_replay(runs.cliff, "reset")[:]
+    reset_steps = int(run_table(runs.cliff, "progress.csv")[-1]["reset_steps"])
+    assert ("nstep", "observation") in rows.keys(True) and 0 < len(rows) <= reset_steps
+    with pytest.raises(FileNotFoundError, match="a kept state holds the agents alone"):
+        load_replay(runs.cliff, "reset", checkpoint="checkpoints/kept/step_0000000100")
+    with pytest.raises(ValueError, match="agent must be 'forward' or 'reset'"):
+        load_replay(runs.cliff, "both")
+    shutil.copy(runs.cliff / "config.yaml", tmp_path / "config.yaml")
+    for read in (latest_checkpoint, load_replay):
+        with pytest.raises(FileNotFoundError, match="holds no complete checkpoint"):
+            read(tmp_path)
