@@ -77,7 +77,9 @@ class ActorTerms:
     """What ``reset.actor`` adds to the reset actor's loss, on the states of the actor's batch: the penalties
     (``preact_penalty`` on ``mean(u^2)``, ``action_l2`` on the normalised action's ``mean(a^2)``) and, for the
     ``tanh_normal`` head, the entropy term (:class:`~torchrl_reset.actor_heads.EntropyBonus`, whose learned
-    temperature, when ``entropy: auto``, is a parameter of the reset loss and of its optimizer)."""
+    temperature, when ``entropy: auto``, is a parameter of the reset loss and of its optimizer). The terms take
+    an actor pass of their own on those states (for the entropy, a sample of its own: an unbiased estimate of
+    ``E[alpha log pi]`` beside the loss's own sampled actions)."""
 
     def __init__(self, actor, head: str, preact_penalty: float, action_l2: float, entropy: EntropyBonus | None):
         self.actor, self.head = actor, head
