@@ -60,12 +60,13 @@ TASK = "peg_insertion_insert"
 PAPER_STEPS = 1_500_000  # environment steps of one run in the paper
 
 
-def run_ours(steps: int, heat_up: int, seed: int, device: str = "cpu") -> dict:
+def run_ours(steps: int, heat_up: int, seed: int, device: str = "cpu", hidden_sizes=(400, 300)) -> dict:
     import train
 
     with tempfile.TemporaryDirectory() as run_dir:
         cfg = paper_config("ours", total_steps=steps, heat_up=heat_up, seed=seed, run_dir=run_dir, progress_bar=False,
-                           eval_every=10 * steps, checkpoint_every=10 * steps, log_every=steps, device=device)
+                           eval_every=10 * steps, checkpoint_every=10 * steps, log_every=steps, device=device,
+                           hidden_sizes=list(hidden_sizes))
         summary = train.train(cfg)
     return {"steps": summary["steps"], "seconds": summary["seconds"], "forward_share": summary["forward_share"],
             "matmul_precision": summary["matmul_precision"],
@@ -159,12 +160,13 @@ class NStepWriter:
             self.buffer.add(first)
 
 
-def run_stock(steps: int, heat_up: int, seed: int, update_products: str | None = None, device: str = "cpu") -> dict:
+def run_stock(steps: int, heat_up: int, seed: int, update_products: str | None = None, device: str = "cpu",
+              hidden_sizes=(400, 300)) -> dict:
     """The stock loop; ``update_products`` runs its updates' matrix products as the recipe's
     ``speed.matmul_precision`` does (``accel.matmul_products``), acting left as it is. On
     ``device`` live the networks, the buffers and the environment's output (as in ours)."""
     products = (lambda: accel.matmul_products(update_products)) if update_products else contextlib.nullcontext
-    cfg = paper_config("ours", seed=seed)
+    cfg = paper_config("ours", seed=seed, hidden_sizes=list(hidden_sizes))
     torch.manual_seed(seed)
     env = make_env(TASK, seed=seed, device=device)
     obs_dim, spec = env.observation_spec["observation"].shape[-1], env.action_spec
@@ -279,6 +281,8 @@ def main(argv=None) -> dict:
     parser.add_argument("--rounds", type=int, default=2, help="times each loop runs, in turn with the others")
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--device", default="cpu", help="cpu or cuda[:N]: where networks, buffers and env output live")
+    parser.add_argument("--hidden-sizes", type=int, nargs=2, default=[400, 300], metavar=("H0", "H1"),
+                        help="both agents' hidden layers (default: the paper's 400 300; smaller for a quick check)")
     parser.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results")
     args = parser.parse_args(argv)
     device = check_device(args.device)
@@ -286,9 +290,12 @@ def main(argv=None) -> dict:
 
     on_cpu = torch.device(device).type == "cpu"
     precision = accel.choose_matmul_precision(paper_config("ours").speed.matmul_precision) if on_cpu else "ieee"
-    loops = {"ours": lambda *a: run_ours(*a, device=device), "stock": lambda *a: run_stock(*a, device=device)}
+    sizes = tuple(args.hidden_sizes)
+    loops = {"ours": lambda *a: run_ours(*a, device=device, hidden_sizes=sizes),
+             "stock": lambda *a: run_stock(*a, device=device, hidden_sizes=sizes)}
     if precision != "ieee":
-        loops[f"stock, {precision} products"] = lambda *a: run_stock(*a, update_products=precision, device=device)
+        loops[f"stock, {precision} products"] = lambda *a: run_stock(*a, update_products=precision, device=device,
+                                                                     hidden_sizes=sizes)
     # rounds of all loops in turn: a slow spell of a shared machine then weighs on every loop alike
     runs = {name: [] for name in loops}
     for round_ in range(args.rounds):
@@ -317,7 +324,8 @@ def main(argv=None) -> dict:
     # a paper run: PAPER_STEPS steps, nearly all of them with their agent updating (its heat-up is
     # 1000 steps per agent), at the measured mean time of an updating step at the common mix
     projected_hours = PAPER_STEPS / ours_rate / 3600
-    report = {"machine": machine(device), "task": TASK, "steps": args.steps, "heat_up": args.heat_up, "common_forward_share": share,
+    report = {"machine": machine(device), "task": TASK, "steps": args.steps, "heat_up": args.heat_up,
+              "hidden_sizes": list(sizes), "common_forward_share": share,
               "matmul_precision": precision, "loops": results, "ratios": ratios, "ratio": ratio, "judged_against": judged,
               "target": "ratio >= 1.5", "met": ratio >= 1.5, "projected_paper_run_hours": projected_hours}
     if not on_cpu:

@@ -84,7 +84,9 @@ def test_update_benchmark_command_writes_its_tables(tmp_path):
 
 def test_loop_benchmark_command_gives_ratios_and_the_paper_run_projection(tmp_path):
     # two forward episodes (H_f = 100) around a reset episode: both agents update and are timed
-    report = bench_loop.main(["--steps", "330", "--heat-up", "10", "--rounds", "1", "--out", str(tmp_path)])
+    # the smallest networks: the command and its arithmetic are checked, not the paper-size timing
+    report = bench_loop.main(["--steps", "330", "--heat-up", "10", "--rounds", "1", "--hidden-sizes", "16", "16",
+                              "--out", str(tmp_path)])
     assert sorted(p.suffix for p in tmp_path.iterdir()) == [".json", ".md"]
     loops = report["loops"]
     assert {r["steps"] for r in loops.values()} == {330}

@@ -18,17 +18,17 @@ TINY = [
 def test_a_tiny_grid_runs_through_the_local_launcher_and_the_report_reads_it(tmp_path):
     sweep = tmp_path / "sweep"
     command = [sys.executable, str(RECIPES / "train.py"), "-m", "task=ball_in_cup_catch", "algo=ours,lnt_sparse",
-               "seed=0,1", f"sweep_dir={sweep}", *TINY]
+               "seed=0", f"sweep_dir={sweep}", *TINY]
     done = subprocess.run(command, capture_output=True, text=True, timeout=600)
     assert done.returncode == 0, done.stderr[-3000:]
     runs = sorted(p.parent.relative_to(sweep).as_posix() for p in sweep.glob("*/*/*/summary.json"))
-    assert runs == [f"ball_in_cup_catch/{algo}/seed{seed}" for algo in ("lnt_sparse", "ours") for seed in (0, 1)]
+    assert runs == [f"ball_in_cup_catch/{algo}/seed0" for algo in ("lnt_sparse", "ours")]
     for run in runs:
         summary = json.loads((sweep / run / "summary.json").read_text())
         assert summary["steps"] == 200 and summary["finished"]
         assert (sweep / run / "config.yaml").exists() and (sweep / run / "code.jsonl").exists()
     # Hydra's own files go beside the runs, one folder per job
-    assert len(list(sweep.glob("multirun/*/*/.hydra"))) == 4
+    assert len(list(sweep.glob("multirun/*/*/.hydra"))) == 2
     # relaunching the same grid with resume=auto continues each run from its checkpoint
     again = subprocess.run([*command, "resume=auto", "total_steps=300"], capture_output=True, text=True, timeout=600)
     assert again.returncode == 0, again.stderr[-3000:]
