@@ -10,7 +10,6 @@ from pathlib import Path
 
 import pytest
 import torch
-from hydra import compose, initialize_config_dir
 from tensordict import TensorDict
 from torchrl.data import Bounded
 from torchrl.envs.utils import ExplorationType, set_exploration_type
@@ -25,6 +24,7 @@ import train  # noqa: E402
 from agents import ActorTerms, make_actor, normalised_action  # noqa: E402
 from config_checks import ConfigError, validate  # noqa: E402
 from records import Saturation  # noqa: E402
+from helpers import quick_config  # noqa: E402
 
 
 def test_inverting_gradients_scale_by_the_distance_to_the_bound_pushed_towards():
@@ -125,14 +125,8 @@ def test_actor_terms_add_the_penalty_on_the_actors_own_preactivation():
     assert float(terms(sample)) == pytest.approx(0.5 * float(u.pow(2).mean()), rel=1e-6)
 
 
-RUN = ["preset=quick", "task=ball_in_cup_catch", "hidden_sizes=[16,16]", "heat_up=40", "task.forward_horizon=20",
-       "reset.batch_size=16", "forward.batch_size=16", "eval_every=100", "log_every=50", "checkpoint_every=100",
-       "progress_bar=false", "total_steps=200"]
-
-
 def _config(tmp_path, *overrides):
-    with initialize_config_dir(config_dir=str(RECIPES / "conf"), version_base="1.3"):
-        return compose(config_name="config", overrides=[*RUN, f"run_dir={tmp_path}", *overrides])
+    return quick_config(tmp_path, *overrides)
 
 
 @pytest.mark.parametrize("algo", ["ours", "lnt"])

@@ -115,7 +115,7 @@ def test_without_member_gradients_the_actor_ascends_the_members_mean():
 import sys  # noqa: E402
 from pathlib import Path  # noqa: E402
 
-from hydra import compose, initialize_config_dir  # noqa: E402
+from helpers import quick_config  # noqa: E402
 
 RECIPES = Path(__file__).resolve().parents[1] / "recipes"
 sys.path.insert(0, str(RECIPES))
@@ -127,14 +127,10 @@ from reset_agents import reset_kind  # noqa: E402
 from task_envs import task_dimensions  # noqa: E402
 
 KEYS = ("independent_batches", "member_actor_gradient", "target_draws", "sampling")
-TINY = ["preset=quick", "task=ball_in_cup_catch", "hidden_sizes=[16,16]", "heat_up=40", "task.forward_horizon=20",
-        "reset.batch_size=8", "forward.batch_size=8", "eval_every=100", "log_every=50", "checkpoint_every=100",
-        "progress_bar=false", "total_steps=200"]
 
 
 def _config(tmp_path, *overrides):
-    with initialize_config_dir(config_dir=str(RECIPES / "conf"), version_base="1.3"):
-        return compose(config_name="config", overrides=[*TINY, f"run_dir={tmp_path}", *overrides])
+    return quick_config(tmp_path, "reset.batch_size=8", "forward.batch_size=8", *overrides)
 
 
 @pytest.mark.parametrize("algo, reward", [("lnt_release", "shaped"), ("lnt_sparse_release", "sparse")])
