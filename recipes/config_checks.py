@@ -184,8 +184,9 @@ def recipe_settings(conf: Path = CONF) -> tuple[frozenset[str], frozenset[str]]:
             package = _package_header(option) or group.name
             if package != "_global_":
                 keys.update(".".join(package.split(".")[: i + 1]) for i in range(package.count(".") + 1))
-            add(OmegaConf.to_container(OmegaConf.load(option), resolve=False) or {},
-                "" if package == "_global_" else f"{package}.")
+            node = OmegaConf.to_container(OmegaConf.load(option), resolve=False) or {}
+            node.pop("defaults", None)  # the option's own choices of other groups (preset=paper's reset actor)
+            add(node, "" if package == "_global_" else f"{package}.")
     return frozenset(keys), frozenset(open_mappings)
 
 

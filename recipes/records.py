@@ -120,6 +120,8 @@ class RunRecord:
         self.irrecoverable = self.history.setdefault("irrecoverable", {"forward": 0, "reset": 0})
         # the saturation counts of the run's last quarter (the summary's)
         self.late_saturation = self.history.setdefault("late_saturation", Saturation.empty())
+        # this log window's counts: saved with the checkpoint, so a window that a stop cuts in two is whole
+        self.window = self.history.setdefault("saturation_window", Saturation.empty())
         self.history.setdefault("last_forward_end", "")
         self.bar = tqdm(total=int(self.cfg.total_steps), initial=self.collector.frames,
                         desc=f"{self.cfg.task.name}/{self.cfg.algo.name}", unit="step", mininterval=2.0,
@@ -186,7 +188,7 @@ class RunRecord:
             **Saturation.fields(self.window),
         }
         self.last_window = Saturation.fields(self.window)
-        self.window = Saturation.empty()
+        self.window = self.history["saturation_window"] = Saturation.empty()
         self.progress.append(row)
         reset_rb = learner.reset_rb
         count = fallback_count(reset_rb)

@@ -207,7 +207,7 @@ def _flatten(node, prefix: str = "") -> dict:
 
 @functools.lru_cache(maxsize=None)
 def recipe_defaults(task: str, algo: str) -> dict:
-    """The settings ``train.py task=<task> algo=<algo>`` runs with (the paper's preset), flattened; empty
+    """The settings ``train.py preset=paper task=<task> algo=<algo>`` runs with (the paper's preset), flattened; empty
     for a task or algorithm this checkout does not know. Keys that older runs' configs lack (a setting
     added since) take these values."""
     conf = Path(__file__).resolve().parent / "conf"
@@ -217,7 +217,7 @@ def recipe_defaults(task: str, algo: str) -> dict:
     from omegaconf import OmegaConf
 
     with initialize_config_dir(config_dir=str(conf), version_base="1.3"):
-        cfg = compose(config_name="config", overrides=[f"task={task}", f"algo={algo}"])
+        cfg = compose(config_name="config", overrides=["preset=paper", f"task={task}", f"algo={algo}"])
     return _flatten(OmegaConf.to_container(cfg, resolve=True))
 
 

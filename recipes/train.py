@@ -18,6 +18,7 @@ run folders into the paper's table and figures.
 """
 from __future__ import annotations
 
+import json
 import logging
 import os
 import re
@@ -34,7 +35,7 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from agents import Agent  # noqa: E402
-from config_checks import RETIRED_KEYS, ConfigError, retired_key_problem, validate  # noqa: E402
+from config_checks import RETIRED_KEYS, ConfigError, retired_key_problem, should_resume, validate  # noqa: E402
 from learner import NonFiniteLoss  # noqa: E402
 from run_files import (Checkpoints, CheckpointDamaged, RunFolderBusy, RunInterrupted, run_folder_lock,  # noqa: E402
                        stop_on_signals)
@@ -57,6 +58,9 @@ def train(cfg: DictConfig) -> dict:
 
 def _train(cfg: DictConfig) -> dict:
     validate(cfg)
+    if (done := finished_summary(cfg)) is not None:  # relaunched (a grid again with resume=auto): nothing to run
+        log.info("%s finished at step %d; its files are left as they are", cfg.run_dir, done["steps"])
+        return done
     run = build_run(cfg, set_up_process(cfg))
     collector, learner = run.collector, run.learner
 
@@ -99,6 +103,20 @@ def _train(cfg: DictConfig) -> dict:
         raise RunInterrupted(stopped_by, [summary], f"{signal.Signals(stopped_by).name} stopped the run at step "
                                                     f"{collector.frames}, checkpointed there")
     return summary
+
+
+def finished_summary(cfg: DictConfig) -> dict | None:
+    """The saved summary of a run that already reached ``total_steps`` and is asked to resume, or None. Such a
+    run is not rebuilt: its tables, ``code.jsonl`` and summary stay as its last stretch wrote them."""
+    summary_file = Path(cfg.run_dir) / "summary.json"
+    if not should_resume(cfg) or not summary_file.exists():
+        return None
+    summary = json.loads(summary_file.read_text())
+    latest = Checkpoints(Path(cfg.run_dir) / "checkpoints").latest()
+    saved = None if latest is None else int(json.loads((latest / "meta.json").read_text())["frames"])
+    if summary.get("finished") and saved == summary.get("steps") and saved >= int(cfg.total_steps):
+        return summary
+    return None
 
 
 def update(agent: Agent, sample, loss_module, *, release_order: bool) -> dict[str, float]:

@@ -130,7 +130,8 @@ def _config(tmp_path, *overrides):
 
 
 @pytest.mark.parametrize("algo", ["ours", "lnt"])
-@pytest.mark.parametrize("remedy", [["reset.actor.head=inverting"], ["reset.actor.preact_penalty=0.01"],
+@pytest.mark.parametrize("remedy", [["reset_actor=release", "reset.actor.head=inverting"],
+                                    ["reset_actor=release", "reset.actor.preact_penalty=0.01"],
                                     ["reset.actor.head=tanh_normal", "reset.actor.entropy=auto"]])
 def test_each_remedy_trains_and_every_run_logs_saturation(tmp_path, algo, remedy):
     summary = train.train(_config(tmp_path, f"algo={algo}", *remedy))
@@ -161,3 +162,19 @@ def test_each_remedy_trains_and_every_run_logs_saturation(tmp_path, algo, remedy
 def test_bad_actor_settings_are_refused(tmp_path, overrides, message):
     with pytest.raises(ConfigError, match=message):
         validate(_config(tmp_path, *overrides))
+
+
+@pytest.mark.parametrize("overrides, head, entropy", [
+    ([], "tanh_normal", "auto"),  # the project's reset actor (reset_actor=rce, the default)
+    (["preset=paper"], "tanh", 0.0001),  # the paper as the release runs it: the deterministic tanh, OU noise
+    (["reset_actor=release"], "tanh", 0.0001),
+    (["preset=paper", "reset_actor=rce"], "tanh_normal", "auto"),  # the command line's choice wins
+])
+def test_the_default_reset_actor_is_the_projects_and_the_paper_preset_restores_the_releases(overrides, head, entropy):
+    from hydra import compose, initialize_config_dir
+
+    with initialize_config_dir(config_dir=str(RECIPES / "conf"), version_base="1.3"):
+        cfg = compose(config_name="config", overrides=overrides)
+    assert (cfg.reset.actor.head, cfg.reset.actor.entropy) == (head, entropy)
+    assert cfg.reset.actor.preact_penalty == 0.0 and cfg.reset.actor.action_l2 == 0.0
+    assert list(cfg.hidden_sizes) == [400, 300]  # the paper's networks either way

@@ -118,6 +118,19 @@ def test_a_resumed_run_reproduces_the_uninterrupted_run(tmp_path, algo):
     assert rows(tmp_path / "whole" / "eval.csv") == rows(tmp_path / "split" / "eval.csv")
 
 
+def test_a_finished_run_relaunched_with_resume_auto_is_left_as_it_is(tmp_path):
+    # a grid launched again with resume=auto: its finished runs are not rebuilt, their files keep every byte
+    common = ["task=peg_insertion_remove", "algo=ours", "total_steps=200"]
+    first = train.train(config(tmp_path, *common))
+    files = {name: (tmp_path / name).read_bytes() for name in ("summary.json", "code.jsonl", "progress.csv")}
+    again = train.train(config(tmp_path, *common, "resume=auto"))
+    assert again == first and first["finished"]
+    assert {name: (tmp_path / name).read_bytes() for name in files} == files
+    longer = train.train(config(tmp_path, "task=peg_insertion_remove", "algo=ours", "total_steps=300", "resume=auto"))
+    assert longer["steps"] == 300  # a larger budget still continues the run
+    assert len((tmp_path / "code.jsonl").read_text().splitlines()) == 2
+
+
 def test_kill_9_loses_at_most_the_steps_since_the_last_checkpoint(tmp_path):
     run_dir = tmp_path / "run"
     args = [sys.executable, str(RECIPES / "train.py"), *TINY, "task=cliff_cheetah", "algo=ours", "total_steps=100000",
