@@ -34,7 +34,6 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import sys
 import tempfile
 import time
 from pathlib import Path
@@ -49,10 +48,11 @@ from torchrl.modules import MLP, DdpgMlpQNet, OrnsteinUhlenbeckProcessModule, Ta
 from torchrl.objectives import DDPGLoss, SoftUpdate
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT / "recipes"))
-sys.path.insert(0, str(ROOT / "benchmarks"))
 
-from bench_updates import check_device, describe, machine, paper_config, write_results  # noqa: E402
+try:  # imported from the benchmarks package (the tests)
+    from .bench_updates import check_device, describe, machine, paper_config, write_results
+except ImportError:  # run as a script: python benchmarks/bench_loop.py
+    from bench_updates import check_device, describe, machine, paper_config, write_results
 from torchrl_reset import accel  # noqa: E402
 from torchrl_reset_envs import make_env  # noqa: E402
 
@@ -61,7 +61,7 @@ PAPER_STEPS = 1_500_000  # environment steps of one run in the paper
 
 
 def run_ours(steps: int, heat_up: int, seed: int, device: str = "cpu", hidden_sizes=(400, 300)) -> dict:
-    import train
+    from torchrl_reset_recipes import train
 
     with tempfile.TemporaryDirectory() as run_dir:
         cfg = paper_config("ours", total_steps=steps, heat_up=heat_up, seed=seed, run_dir=run_dir, progress_bar=False,

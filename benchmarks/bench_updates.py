@@ -33,7 +33,6 @@ import json
 import os
 import platform
 import statistics
-import sys
 import time
 from datetime import datetime, timezone
 from pathlib import Path
@@ -47,21 +46,22 @@ from torch.utils.flop_counter import flop_registry
 from torchrl.objectives import DDPGLoss
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT / "recipes"))
 
 import torchrl  # noqa: E402
-from agents import make_forward_agent, make_reset_agent  # noqa: E402
-from reset_agents import lnt_batch  # noqa: E402
-from buffers import make_buffers  # noqa: E402
-from run_files import processor_name  # noqa: E402
+from torchrl_reset_recipes import CONF
+from torchrl_reset_recipes.training.agents import make_forward_agent, make_reset_agent
+from torchrl_reset_recipes.training.run_spec import run_spec
+from torchrl_reset_recipes.training.reset_agents import lnt_batch
+from torchrl_reset_recipes.training.buffers import make_buffers
+from torchrl_reset_recipes.training.run_folder import processor_name
 from torchrl_reset import accel  # noqa: E402
 
 OBS, ACT = 14, 7  # peg-insertion
 
 
 def paper_config(algo: str, **overrides):
-    with initialize_config_dir(config_dir=str(ROOT / "recipes" / "conf"), version_base="1.3"):
-        cfg = compose(config_name="config", overrides=["task=peg_insertion_insert", f"algo={algo}",
+    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
+        cfg = compose(config_name="config", overrides=["task=peg_insertion_insert", f"algo={algo}", "preset=paper",
                                                         *[f"{k}={v}" for k, v in overrides.items()]])
     return cfg
 
@@ -90,7 +90,7 @@ def filled_buffers(cfg, transitions: int = 5000):
     """The recipe's replay buffers (n-step transform included) and example buffer, filled with random data."""
     from torchrl_reset import InitialStateBuffer
 
-    forward_rb, reset_rb = make_buffers(cfg)
+    forward_rb, reset_rb = make_buffers(run_spec(cfg, check=False))
     episode = int(cfg.task.forward_horizon)
     data = forward_batch(transitions)
     data.set(("collector", "traj_ids"), torch.arange(transitions) // episode)
@@ -123,10 +123,10 @@ def make_update(kind: str, *, members: int | None = None, batch: int | None = No
     cfg = paper_config("ours" if kind == "forward" else kind, **overrides)
     forward_rb, reset_rb, examples = filled_buffers(cfg)
     if kind == "forward":
-        agent = make_forward_agent(cfg, OBS, action_spec())
+        agent = make_forward_agent(run_spec(cfg, check=False), OBS, action_spec())
         names = ("loss_actor", "loss_value")
     else:
-        agent = make_reset_agent(cfg, OBS, action_spec())
+        agent = make_reset_agent(run_spec(cfg, check=False), OBS, action_spec())
         names = ("loss_actor", "loss_classifier") if kind == "ours" else ("loss_actor", "loss_value")
     agent.loss.to(device)  # as the recipe does
     agent.actor.to(device)  # the loss moves its own copies of the networks' buffers, not theirs (tanh bounds, priors)

@@ -13,7 +13,8 @@ from .chain import ChainEnv
 from .cliff import CliffCheetahEnv, CliffWalkerEnv
 from .peg import PegInsertionEnv
 from .ur3 import UR3Env
-from .ur3_backends import RTDEBackend, SafetyLimits, SimBackend, UR3Backend
+from .ur3_backends import SafetyLimits, SimBackend, UR3Backend
+from .ur3_rtde import RTDEBackend
 from .tasks import GYM_NAMESPACE, TASKS, TaskSpec, gym_id, make_env, make_gym_env, register_gym_envs, task_spec
 
 register_gym_envs()

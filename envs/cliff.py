@@ -56,7 +56,7 @@ class _CliffEnv(MujocoResetEnv):
     def in_ditch(self, qpos) -> np.ndarray:
         """Whether each configuration ``qpos`` (``[..., nq]``) is in the ditch: past the edge and below
         ``ditch_height``, the task's irrecoverable states (one test for the env's latched flag and for
-        ``recipes/recoverable.py``'s rollouts)."""
+        ``recipes/analysis/recoverable.py``'s rollouts)."""
         qpos = np.asarray(qpos)
         return (qpos[..., 0] > self.edge) & (qpos[..., 1] < self.ditch_height)
 

@@ -13,7 +13,8 @@ from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
 from ._mujoco import tolerance
-from .ur3_backends import RobotState, RTDEBackend, SafetyLimits, SimBackend, UR3Backend, cup_axis_tilt
+from .ur3_backends import RobotState, SafetyLimits, SimBackend, UR3Backend, cup_axis_tilt
+from .ur3_rtde import RTDEBackend
 from .ur3_model import CUP_RADIUS, HOME_Q, PEG_LENGTH, flange_pose
 
 __all__ = ["UR3Env", "sim_manual_reset", "console_manual_reset", "PEG_TARGET", "REACHER_GOAL"]

@@ -32,14 +32,14 @@ import torch
 from omegaconf import DictConfig
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from agents import Agent  # noqa: E402
-from config_checks import RETIRED_KEYS, ConfigError, retired_key_problem, should_resume, validate  # noqa: E402
-from learner import NonFiniteLoss  # noqa: E402
-from run_files import (Checkpoints, CheckpointDamaged, RunFolderBusy, RunInterrupted, run_folder_lock,  # noqa: E402
-                       stop_on_signals)
-from single_run import RobotStopped, TrainingDiverged, build_run, set_up_process  # noqa: E402
+from torchrl_reset_recipes.training.agents import Agent
+from torchrl_reset_recipes.training.config_checks import RETIRED_KEYS, ConfigError, retired_key_problem, validate
+from torchrl_reset_recipes.training.run_spec import RunSpec, run_spec
+from torchrl_reset_recipes.training.learner import NonFiniteLoss
+from torchrl_reset_recipes.training.checkpoints import Checkpoints, CheckpointDamaged
+from torchrl_reset_recipes.training.run_folder import RunFolderBusy, RunInterrupted, run_folder_lock, stop_on_signals
+from torchrl_reset_recipes.training.single_run import RobotStopped, TrainingDiverged, build_run, set_up_process
 
 from torchrl_reset import DualCollector  # noqa: E402
 from torchrl_reset_envs.ur3_backends import RobotFault  # noqa: E402
@@ -57,11 +57,11 @@ def train(cfg: DictConfig) -> dict:
 
 
 def _train(cfg: DictConfig) -> dict:
-    validate(cfg)
-    if (done := finished_summary(cfg)) is not None:  # relaunched (a grid again with resume=auto): nothing to run
+    spec = run_spec(cfg)  # checked (again: under the run folder's lock) and worked out, once
+    if (done := finished_summary(spec)) is not None:  # relaunched (a grid again with resume=auto): nothing to run
         log.info("%s finished at step %d; its files are left as they are", cfg.run_dir, done["steps"])
         return done
-    run = build_run(cfg, set_up_process(cfg))
+    run = build_run(spec, set_up_process(spec))
     collector, learner = run.collector, run.learner
 
     # Algorithm 1, lines 5-28: each batch is one action of a forward or a reset episode
@@ -105,11 +105,11 @@ def _train(cfg: DictConfig) -> dict:
     return summary
 
 
-def finished_summary(cfg: DictConfig) -> dict | None:
+def finished_summary(spec: RunSpec) -> dict | None:
     """The saved summary of a run that already reached ``total_steps`` and is asked to resume, or None. Such a
     run is not rebuilt: its tables, ``code.jsonl`` and summary stay as its last stretch wrote them."""
-    summary_file = Path(cfg.run_dir) / "summary.json"
-    if not should_resume(cfg) or not summary_file.exists():
+    cfg, summary_file = spec.cfg, Path(spec.cfg.run_dir) / "summary.json"
+    if not spec.resume or not summary_file.exists():
         return None
     summary = json.loads(summary_file.read_text())
     latest = Checkpoints(Path(cfg.run_dir) / "checkpoints").latest()

@@ -5,7 +5,6 @@ from __future__ import annotations
 import csv
 import json
 import math
-import sys
 from pathlib import Path
 
 import pytest
@@ -18,12 +17,11 @@ from torchrl_reset.actor_heads import (EntropyBonus, InvertingGradientHead, Inve
                                        saturation)
 
 RECIPES = Path(__file__).resolve().parents[1] / "recipes"
-sys.path.insert(0, str(RECIPES))
 
-import train  # noqa: E402
-from agents import ActorTerms, make_actor, normalised_action  # noqa: E402
-from config_checks import ConfigError, validate  # noqa: E402
-from records import Saturation  # noqa: E402
+from torchrl_reset_recipes import train
+from torchrl_reset_recipes.training.agents import ActorTerms, make_actor, normalised_action
+from torchrl_reset_recipes.training.config_checks import ConfigError, validate
+from torchrl_reset_recipes.training.records import Saturation
 from helpers import quick_config  # noqa: E402
 
 

@@ -1,17 +1,12 @@
 """The benchmark scripts: their FLOP counts against hand counts, and each documented command end to end (tiny runs)."""
 import json
-import sys
 from pathlib import Path
 
 import pytest
 import torch
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT / "benchmarks"))
-sys.path.insert(0, str(ROOT / "recipes"))
-
-import bench_loop  # noqa: E402
-import bench_updates  # noqa: E402
+from benchmarks import bench_loop, bench_updates
 
 # peg-insertion: 14 observations, 7 actions; the paper's 400-300 networks
 OBS, ACT, H0, H1 = 14, 7, 400, 300

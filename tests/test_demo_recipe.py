@@ -5,7 +5,7 @@ import importlib.util
 import json
 from pathlib import Path
 
-RECIPE = Path(__file__).resolve().parents[1] / "recipes" / "demo_chain.py"
+RECIPE = Path(__file__).resolve().parents[1] / "recipes" / "examples" / "demo_chain.py"
 
 
 def test_demo_recipe_runs_and_writes_a_consistent_summary(tmp_path):

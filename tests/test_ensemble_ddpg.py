@@ -118,13 +118,12 @@ from pathlib import Path  # noqa: E402
 from helpers import quick_config  # noqa: E402
 
 RECIPES = Path(__file__).resolve().parents[1] / "recipes"
-sys.path.insert(0, str(RECIPES))
 
-import train  # noqa: E402
-from agents import make_reset_agent  # noqa: E402
-from buffers import make_buffers  # noqa: E402
-from reset_agents import reset_kind  # noqa: E402
-from task_envs import task_dimensions  # noqa: E402
+from torchrl_reset_recipes import train
+from torchrl_reset_recipes.training.agents import make_reset_agent
+from torchrl_reset_recipes.training.buffers import make_buffers
+from torchrl_reset_recipes.training.run_spec import run_spec
+from torchrl_reset_recipes.training.task_envs import task_dimensions
 
 KEYS = ("independent_batches", "member_actor_gradient", "target_draws", "sampling")
 
@@ -146,7 +145,7 @@ def test_the_release_ensemble_draws_its_targets_and_samples_k_batches(tmp_path):
     cfg = _config(tmp_path, "algo=lnt_sparse_release", "algo.num_members=3")
     torch.manual_seed(0)
     obs_dim, spec = task_dimensions(cfg)
-    agent = make_reset_agent(cfg, obs_dim, spec)
+    agent = make_reset_agent(run_spec(cfg, check=False), obs_dim, spec)
     loss = agent.loss
     assert isinstance(loss, EnsembleDDPGLoss) and loss.draws_actor_rows
     live, target = loss.value_network_params.get("weight_0"), loss.target_value_network_params.get("weight_0")
@@ -156,7 +155,7 @@ def test_the_release_ensemble_draws_its_targets_and_samples_k_batches(tmp_path):
     actor_live = list(loss.actor_network_params.values(True, True))
     actor_target = list(loss.target_actor_network_params.values(True, True))
     assert any(not torch.equal(a, b) for a, b in zip(actor_live, actor_target) if a.dim() > 1)
-    _, reset_rb = make_buffers(cfg)
+    _, reset_rb = make_buffers(run_spec(cfg, check=False))
     assert reset_rb.batch_size == 3 * 8  # K batches of reset.batch_size, split by prepare()
     with pytest.raises(ValueError, match=r"\[K, B\]"):  # a [B] batch is refused by the K-batch loss
         loss.loss_value(_batch([8]))
@@ -166,4 +165,4 @@ def test_the_release_ensemble_draws_its_targets_and_samples_k_batches(tmp_path):
 def test_a_short_run_with_the_release_ensemble_trains(tmp_path, algo):
     summary = train.train(_config(tmp_path, f"algo={algo}", "algo.num_members=4"))
     assert summary["finished"] and summary["algo"] == algo
-    assert reset_kind(_config(tmp_path, f"algo={algo}")).name == algo
+    assert run_spec(_config(tmp_path, f"algo={algo}"), check=False).kind.name == algo

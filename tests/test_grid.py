@@ -36,7 +36,7 @@ def test_a_tiny_grid_runs_through_the_local_launcher_and_the_report_reads_it(tmp
         summary = json.loads((sweep / run / "summary.json").read_text())
         assert summary["steps"] == 300
         assert [json.loads(line)["from_step"] for line in (sweep / run / "code.jsonl").read_text().splitlines()] == [0, 200]
-    report = subprocess.run([sys.executable, str(RECIPES / "report.py"), str(sweep), "--out", str(tmp_path / "report")],
+    report = subprocess.run([sys.executable, str(RECIPES / "analysis" / "report.py"), str(sweep), "--out", str(tmp_path / "report")],
                             capture_output=True, text=True, timeout=300)
     assert report.returncode == 0, report.stderr[-3000:]
     table = (tmp_path / "report" / "table1.md").read_text()

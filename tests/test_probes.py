@@ -1,6 +1,6 @@
 """The analysis probes (``results/*/probes/*.py``): every one answers ``--help``, and every one runs on tiny run
 folders, made once per session by the recipe, and prints what it should. Also the run-folder readers of
-``recipes/saved_runs.py`` the probes use (the config, the CSV tables, the replay buffers)."""
+``recipes/analysis/saved_runs.py`` the probes use (the config, the CSV tables, the replay buffers)."""
 from __future__ import annotations
 
 import ast
@@ -19,10 +19,9 @@ from hydra import compose, initialize_config_dir
 
 ROOT = Path(__file__).resolve().parents[1]
 RECIPES = ROOT / "recipes"
-sys.path.insert(0, str(RECIPES))
 
-import train  # noqa: E402
-from saved_runs import latest_checkpoint, load_replay, run_config, run_table  # noqa: E402
+from torchrl_reset_recipes import train
+from torchrl_reset_recipes.analysis.saved_runs import latest_checkpoint, load_replay, run_config, run_table
 
 #: every probe in the repository, found anew at each collection: a probe added later is tested as well
 PROBES = sorted((ROOT / "results").glob("*/probes/*.py"))
@@ -130,6 +129,12 @@ PROBE_RUNS: dict[str, ProbeRun] = {
         (r"^data at 100 steps: \d+ forward rows, \d+ reset rows \(\d+ one step from success\)$",
          r"^seed 0 prior_scale 0 at +0 updates: forward rows' minimum", r"^seed 0 prior_scale 3 at +2 updates"),
         wrote=_exists("ensemble.csv")),
+    "lnt-sparse/probes/offline_options.py": ProbeRun(
+        lambda r, out: [r.peg / "checkpoints" / f"step_{STEPS:010d}", "--seeds", "0", "--options", "project",
+                        "all_four", "--updates", "2", "--every", "1", "--out", out / "options.csv"],
+        (r": \d+ forward rows, \d+ reset rows \(\d+ one step from success\)$",
+         r"^seed 0 +project at +0 updates: forward rows' minimum", r"^seed 0 +all_four at +2 updates"),
+        wrote=_exists("options.csv")),
     "100000-tier2/probes/actor_saturation.py": ProbeRun(
         lambda r, out: [r.cliff, "--states", "5", "--out", out / "saturation"],
         (r": 2 checkpoints, \d+ fixed trigger states$", r"^100 \| ", rf"^{STEPS} \| .* \| \d+ / \d+$", r"^wrote "),
@@ -187,7 +192,6 @@ def test_every_probe_answers_help(probe, monkeypatch, capsys):
     doc = ast.get_docstring(ast.parse(probe.read_text()))
     assert doc, f"{_name(probe)} has no module docstring to describe it"
     monkeypatch.setattr(sys, "argv", [str(probe), "--help"])
-    monkeypatch.setattr(sys, "path", list(sys.path))  # what the probe adds to it goes with the test
     try:
         runpy.run_path(str(probe), run_name="__main__")
     except SystemExit as exited:
@@ -224,7 +228,7 @@ def test_every_probe_runs_on_a_run_folder(probe, request, tmp_path):
         entry.wrote(runs, tmp_path)
 
 
-# the run-folder readers of recipes/saved_runs.py
+# the run-folder readers of recipes/analysis/saved_runs.py
 
 
 def test_run_config_reads_a_run_folders_config(runs, tmp_path):

@@ -15,7 +15,7 @@ from torchrl.data import LazyTensorStorage, ReplayBuffer
 from torchrl.envs.utils import check_env_specs
 
 from torchrl_reset import DualCollector, EpisodeWindowSampler, NStepStateTransform, accel
-from torchrl_reset.collector import own_time_limit
+from torchrl_reset.collector_env import own_time_limit
 
 ROOT = Path(__file__).resolve().parents[1]
 SIZES = re.compile(r"^total_steps, hidden, buffer_size, heat_up = .*$", re.M)

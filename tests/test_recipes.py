@@ -18,17 +18,19 @@ from tensordict import TensorDict
 from torchrl.objectives import DDPGLoss
 
 RECIPES = Path(__file__).resolve().parents[1] / "recipes"
-sys.path.insert(0, str(RECIPES))
 
-import single_run  # noqa: E402
-import train  # noqa: E402
+from torchrl_reset_recipes.training import single_run
+
+from torchrl_reset_recipes.training.run_spec import run_spec
+from torchrl_reset_recipes import train
 from torchrl_reset_envs import make_env  # noqa: E402
-from agents import make_actor, make_reset_agent  # noqa: E402
-from reset_agents import lnt_batch  # noqa: E402
-from buffers import make_buffers  # noqa: E402
-from run_files import Checkpoints, processor_name  # noqa: E402
-from task_envs import UpdateBudget, realtime_env, task_dimensions  # noqa: E402
-from config_checks import ALGOS, ConfigError  # noqa: E402
+from torchrl_reset_recipes.training.agents import make_actor, make_reset_agent
+from torchrl_reset_recipes.training.reset_agents import lnt_batch
+from torchrl_reset_recipes.training.buffers import make_buffers
+from torchrl_reset_recipes.training.checkpoints import Checkpoints
+from torchrl_reset_recipes.training.run_folder import processor_name
+from torchrl_reset_recipes.training.task_envs import UpdateBudget, realtime_env, task_dimensions
+from torchrl_reset_recipes.training.config_checks import ALGOS, ConfigError
 
 from torchrl_reset import EnsembleValueOperator, accel  # noqa: E402
 from torchrl_reset_envs import TASKS  # noqa: E402
@@ -284,7 +286,7 @@ def test_lnt_reset_loss_gives_each_member_its_own_td_target(tmp_path):
 
     cfg = config(tmp_path, "task=peg_insertion_insert", "algo=lnt")
     spec = make_env("peg_insertion_insert").action_spec
-    agent = make_reset_agent(cfg, 14, spec)
+    agent = make_reset_agent(run_spec(cfg, check=False), 14, spec)
     k, b = cfg.algo.num_members, 6
     td = TensorDict({
         "observation": torch.randn(b, 14), "action": torch.rand(b, 7) * 4 - 2,
@@ -378,7 +380,7 @@ def test_matmul_precision_auto_keeps_float32_accuracy_and_products_restore_the_s
 def test_video_plays_the_evaluation_of_the_latest_checkpoint_into_a_gif(tmp_path):
     import imageio.v2 as imageio
     import numpy as np
-    import video
+    from torchrl_reset_recipes.analysis import video
 
     train.train(config(tmp_path, "task=ball_in_cup_catch", "total_steps=200"))
     try:
@@ -399,8 +401,8 @@ def test_video_plays_the_evaluation_of_the_latest_checkpoint_into_a_gif(tmp_path
 
 
 def test_load_agents_reads_a_run_folders_agents_back_from_its_checkpoints(tmp_path):
-    from run_files import CheckpointDamaged
-    from saved_runs import load_agents
+    from torchrl_reset_recipes.training.checkpoints import CheckpointDamaged
+    from torchrl_reset_recipes.analysis.saved_runs import load_agents
 
     # checkpoints at 100 and 200, the agents' state of both also kept
     train.train(config(tmp_path, "task=ball_in_cup_catch", "total_steps=200", "keep_states_every=100"))
@@ -415,7 +417,7 @@ def test_load_agents_reads_a_run_folders_agents_back_from_its_checkpoints(tmp_pa
     obs_dim, action_spec = task_dimensions(saved.cfg)
     observation = TensorDict(observation=torch.linspace(-1, 1, obs_dim).unsqueeze(0), batch_size=[1])
     torch.manual_seed(123)
-    fresh = make_reset_agent(saved.cfg, obs_dim, action_spec)
+    fresh = make_reset_agent(run_spec(saved.cfg, check=False), obs_dim, action_spec)
     with torch.no_grad():
         assert not torch.equal(fresh.actor(observation.clone())["action"], saved.reset.actor(observation.clone())["action"])
     # an older checkpoint by its folder; the reference ensemble built from the same state gives the
@@ -498,10 +500,10 @@ def test_options_beside_the_paper_a_pessimistic_start_and_the_reset_agents_own_t
     # the paper's setting: trained output biases start at zero and the reset agent's tau is the global one
     spec = make_env("peg_insertion_insert").action_spec
     torch.manual_seed(0)
-    paper = make_reset_agent(config(tmp_path, "algo=ours"), 14, spec)
+    paper = make_reset_agent(run_spec(config(tmp_path, "algo=ours"), check=False), 14, spec)
     torch.manual_seed(0)
-    pessimistic = make_reset_agent(config(tmp_path, "algo=ours", "algo.initial_logit_bias=-4",
-                                                     "reset.tau=0.01"), 14, spec)
+    pessimistic = make_reset_agent(run_spec(config(tmp_path, "algo=ours", "algo.initial_logit_bias=-4",
+                                                     "reset.tau=0.01"), check=False), 14, spec)
     td = TensorDict(observation=torch.randn(32, 14), action=torch.rand(32, 7) * 2 - 1, batch_size=[32])
     with torch.no_grad():
         shift = pessimistic.model(td.clone())["state_action_logit"] - paper.model(td.clone())["state_action_logit"]
@@ -518,10 +520,10 @@ def test_lnt_option_beside_the_paper_targets_clipped_to_the_rewards_bounds(tmp_p
     from torchrl_reset.td_bounds import BoundedTD0Estimator
 
     spec = make_env("peg_insertion_insert").action_spec
-    paper = make_reset_agent(config(tmp_path, "algo=lnt", f"speed.accelerate={accelerate}"), 14, spec)
+    paper = make_reset_agent(run_spec(config(tmp_path, "algo=lnt", f"speed.accelerate={accelerate}"), check=False), 14, spec)
     assert type(paper.loss.value_estimator) is TD0Estimator  # the paper's LNT: unclipped
-    clipped = make_reset_agent(config(tmp_path, "algo=lnt", "algo.reward_bounds=[0,1]",
-                                                  f"speed.accelerate={accelerate}"), 14, spec)
+    clipped = make_reset_agent(run_spec(config(tmp_path, "algo=lnt", "algo.reward_bounds=[0,1]",
+                                                  f"speed.accelerate={accelerate}"), check=False), 14, spec)
     estimator = clipped.loss.value_estimator
     # rewards in [0, 1] at gamma = 0.99: every value lies in [0, 1 / 0.01] = [0, 100]
     assert isinstance(estimator, BoundedTD0Estimator) and estimator.bounds == pytest.approx((0.0, 100.0))
@@ -532,7 +534,7 @@ def test_two_runs_never_train_in_one_folder(tmp_path):
     # a grid whose run_dir does not tell its jobs apart would send them into one folder: the second stops at once
     import fcntl
 
-    from run_files import RunFolderBusy
+    from torchrl_reset_recipes.training.run_folder import RunFolderBusy
 
     tmp_path.mkdir(exist_ok=True)
     with open(tmp_path / ".lock", "w") as held:
@@ -577,12 +579,12 @@ def test_the_summary_names_the_processor_kind_a_run_reproduces_on(tmp_path):
 def test_release_order_steps_the_critic_then_the_actor_with_it_on_rows_drawn_again(tmp_path, release_order):
     """update_order=release (train.py's update): a critic step, then an actor step whose loss uses the updated classifiers, on
     B rows drawn with replacement from the batch. Worked out here with plain SGD steps, by hand."""
-    from train import update
+    from torchrl_reset_recipes.train import update
 
-    cfg = config(tmp_path, "algo=ours")
+    cfg = config(tmp_path, "algo=ours", "reset_actor=release")  # the deterministic actor, worked out by hand below
     spec = make_env("peg_insertion_insert").action_spec
     torch.manual_seed(0)
-    agent = make_reset_agent(cfg, 14, spec)
+    agent = make_reset_agent(run_spec(cfg, check=False), 14, spec)
     actor_params, critic_params = list(agent.actor.parameters()), list(agent.model.parameters())
     agent.optimizer = torch.optim.SGD([{"params": actor_params, "lr": 0.3}, {"params": critic_params, "lr": 0.5}])
     b = 16
@@ -590,7 +592,7 @@ def test_release_order_steps_the_critic_then_the_actor_with_it_on_rows_drawn_aga
     sample = TensorDict(observation=torch.randn(b, 14), action=torch.rand(b, 7) * 2 - 1, next=state(),
                         nstep=state(), example=state(), batch_size=[b])
     torch.manual_seed(0)
-    reference = make_reset_agent(cfg, 14, spec)  # the same networks, to be stepped by hand
+    reference = make_reset_agent(run_spec(cfg, check=False), 14, spec)  # the same networks, to be stepped by hand
     ref_actor, ref_critic = list(reference.actor.parameters()), list(reference.model.parameters())
 
     # by hand: theta_c <- theta_c - 0.5 dL_c; then rows drawn with replacement, theta_a <- theta_a - 0.3 dL_a
@@ -602,7 +604,7 @@ def test_release_order_steps_the_critic_then_the_actor_with_it_on_rows_drawn_aga
     rows = torch.randint(b, (b,)) if release_order else torch.arange(b)
     if not release_order:  # the joint step: the actor's loss from the classifiers before their step
         torch.manual_seed(0)
-        reference = make_reset_agent(cfg, 14, spec)
+        reference = make_reset_agent(run_spec(cfg, check=False), 14, spec)
         ref_actor = list(reference.actor.parameters())
     grads = torch.autograd.grad(reference.loss.loss_actor(sample[rows].clone())[0], ref_actor)
     expected_actor = [(p - 0.3 * g).detach() for p, g in zip(ref_actor, grads)]
@@ -620,13 +622,14 @@ def test_release_order_steps_the_critic_then_the_actor_with_it_on_rows_drawn_aga
 
 def test_cliff_walker_explores_with_the_releases_smaller_noise(tmp_path):
     """The release's configs: sigma 0.01 and dt 0.01 for cliff-walker's two agents, 0.2 and 0.05 elsewhere."""
-    from agents import exploration_settings, with_exploration
+    from torchrl_reset_recipes.training.agents import exploration_settings, with_exploration
 
     spec = make_env("peg_insertion_insert").action_spec
     for task, sigma, dt in (("cliff_walker", 0.01, 0.01), ("cliff_cheetah", 0.2, 0.05), ("peg_insertion_insert", 0.2, 0.05)):
         cfg = config(tmp_path, f"task={task}")
-        assert exploration_settings(cfg) | {"sigma": sigma, "dt": dt, "theta": 0.15} == exploration_settings(cfg)
-        noise = with_exploration(make_actor(14, spec, [16, 16]), spec, cfg)[-1].ou
+        settings = exploration_settings(run_spec(cfg, check=False))
+        assert settings | {"sigma": sigma, "dt": dt, "theta": 0.15} == settings
+        noise = with_exploration(make_actor(14, spec, [16, 16]), spec, run_spec(cfg, check=False))[-1].ou
         assert (noise.sigma, noise.dt, noise.theta) == (sigma, dt, 0.15)
 
 
@@ -697,7 +700,7 @@ def test_a_refused_command_exits_2_with_the_reason_and_leaves_nothing_behind(tmp
 
 
 def test_keys_the_recipe_does_not_define_are_refused_and_those_its_groups_add_are_not(tmp_path):
-    from config_checks import validate
+    from torchrl_reset_recipes.training.config_checks import validate
 
     with pytest.raises(ConfigError, match="unknown key total_step: .*closest known key is total_steps"):
         validate(config(tmp_path, "+total_step=1000"))
@@ -729,7 +732,7 @@ def test_a_config_without_the_release_keys_runs_as_the_recipe_ran_before_them(tm
             for section, key in (("algo", "prior_bias_draw"), ("exploration", "restart"), ("exploration", "clip"),
                                  (None, "update_order"), ("forward", "sampling"), (None, "target_init")):
                 del (cfg if section is None else cfg[section])[key]
-    run = single_run.build_run(cfg, "ieee")
+    run = single_run.build_run(run_spec(cfg, check=False), "ieee")
     try:
         release = not written_before
         assert run.reset.model.prior_bias_draw == ("xavier" if release else "fan_in")
@@ -755,7 +758,7 @@ def test_each_replay_buffer_keeps_what_its_agent_reads_of_a_collected_step(tmp_p
     action, the next state, the end flags) and what the reset agent's kind adds; none of the trigger's,
     collector's or env's other entries. Listed here by hand from docs/method.md sections 3 and 6."""
     cfg = config(tmp_path, f"algo={algo}", "task=cliff_cheetah", "total_steps=60")
-    run = single_run.build_run(cfg, "ieee")
+    run = single_run.build_run(run_spec(cfg, check=False), "ieee")
     try:
         step = next(iter(run.collector))
         collected = {k if isinstance(k, tuple) else (k,) for k in step.keys(True, True)}
@@ -775,7 +778,7 @@ def _chain_record(tmp_path, *, ditch, trigger_cell, horizon, frames, reset_direc
     leave the ditch); the trigger is sure below ``trigger_cell`` and hopeless from it on."""
     from tensordict.nn import TensorDictModule
     from torchrl.envs import TransformedEnv
-    from records import RunRecord
+    from torchrl_reset_recipes.training.records import RunRecord
     from torchrl_reset import DualCollector, ResetTriggerTransform
     from torchrl_reset_envs import ChainEnv
 
@@ -791,7 +794,7 @@ def _chain_record(tmp_path, *, ditch, trigger_cell, horizon, frames, reset_direc
                               min_reset_steps=1, total_frames=frames, event_keys=["irrecoverable"])
     cfg = config(tmp_path, "task.curriculum.index=0", "heat_up=1000")
     tmp_path.mkdir(parents=True)
-    record = RunRecord(cfg, tmp_path, collector, trigger)
+    record = RunRecord(run_spec(cfg, check=False), tmp_path, collector, trigger)
     record.begin(None)
     for batch in collector:
         record.step(batch, DualCollector.phase_of(batch))

@@ -1,16 +1,14 @@
-"""recipes/recoverable.py: whether a trigger's state could still be saved, tried in the task's own model."""
+"""recipes/analysis/recoverable.py: whether a trigger's state could still be saved, tried in the task's own model."""
 from __future__ import annotations
 
 import csv
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "recipes"))
 
-import recoverable  # noqa: E402
+from torchrl_reset_recipes.analysis import recoverable
 from torchrl_reset_envs import CliffCheetahEnv, CliffWalkerEnv  # noqa: E402
 
 

@@ -4,16 +4,16 @@ from __future__ import annotations
 import csv
 import json
 import math
-import sys
 from pathlib import Path
 
 import matplotlib.colors
 import matplotlib.image as mpimg
 import pytest
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "recipes"))
 
-import report  # noqa: E402
+from torchrl_reset_recipes import CONF
+from torchrl_reset_recipes.analysis import figures, report
+from torchrl_reset_recipes.analysis import runs as run_groups
 
 
 def fabricate(root: Path, task, algo, seed, p_thresh, avg_return, manual, share, success, steps=1000):
@@ -110,7 +110,7 @@ def test_a_run_still_going_is_read_from_its_config_and_logs(tmp_path):
     with open(folder / "progress.csv", "w", newline="") as f:
         csv.writer(f).writerows([["frames", "forward_steps", "reset_steps", "forward_episodes", "successful_resets",
                                   "manual_resets"], [500, 100, 400, 2, 1, 3], [1000, 250, 750, 5, 3, 4]])
-    run, = report.find_runs([tmp_path / "runs"])
+    run, = run_groups.find_runs([tmp_path / "runs"])
     # as it stands at 1000 steps: share 250 / 1000, success 3 / 7, no evaluation yet
     assert run.summary["steps"] == 1000 and run.summary["manual_resets"] == 4 and not run.summary["finished"]
     assert run.summary["forward_share"] == pytest.approx(0.25) and run.summary["reset_success_rate"] == pytest.approx(3 / 7)
@@ -135,23 +135,23 @@ def test_runs_short_of_the_budget_are_left_out_of_their_groups_means(tmp_path):
     assert "| peg-insertion (insert) | LNT | 0.1 | 1 | 750 (in progress) |" in table
     assert "Left out of the means, still short of the budget: ours seed 1 at 500 steps." in table
     # Fig. 3 draws the same runs: ours from seed 0 alone, LNT's only run marked in progress
-    groups = report.figure3_groups(report.find_runs([runs], budget=1000))
+    groups = figures.figure3_groups(run_groups.find_runs([runs], budget=1000))
     assert [r.summary["seed"] for r in groups["ours"][0]] == [0] and groups["ours"][1] == "ours"
     assert [r.summary["seed"] for r in groups["lnt"][0]] == [0] and groups["lnt"][1] == "LNT, in progress"
 
 
 def test_step_axes_read_in_thousands_and_millions():
-    assert [report._steps_label(v) for v in (0, 500, 2000, 12500, 150000, 1.5e6)] == ["0", "500", "2k", "12.5k", "150k", "1.5M"]
+    assert [figures._steps_label(v) for v in (0, 500, 2000, 12500, 150000, 1.5e6)] == ["0", "500", "2k", "12.5k", "150k", "1.5M"]
 
 
 def _config_yaml(*overrides: str, drop: str | None = None, task: str = "peg_insertion_insert") -> str:
-    """A run's config.yaml as train.py writes it (the composed recipe config of ``task``, resolved), with ``drop``
+    """A run's config.yaml as train.py writes it (the recipe config of ``task`` at the paper preset, resolved), with ``drop``
     removed as from a config written before that setting existed."""
     from hydra import compose, initialize_config_dir
     from omegaconf import OmegaConf, open_dict
 
-    with initialize_config_dir(config_dir=str(Path(report.__file__).parent / "conf"), version_base="1.3"):
-        cfg = compose(config_name="config", overrides=[f"task={task}", "algo=ours", *overrides])
+    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
+        cfg = compose(config_name="config", overrides=[f"task={task}", "algo=ours", "preset=paper", *overrides])
     if drop is not None:
         section, key = drop.split(".")
         with open_dict(cfg):
@@ -188,7 +188,7 @@ def test_runs_with_different_settings_are_kept_apart_and_named_by_what_they_chan
     assert ("| peg-insertion (insert) | ours (algo.initial_logit_bias=-4, algo.prior_scale=1.0) | 0.1 | 1 | 1000 | "
             "3.00 ± 0.00 | 70 ± 0 |") in table
     assert table.index("ours (paper's setting)") < table.index("ours (algo.initial_logit_bias=-4)")
-    groups = report.figure3_groups(report.find_runs([runs]))
+    groups = figures.figure3_groups(run_groups.find_runs([runs]))
     assert {key: sorted(r.summary["seed"] for r in members) for key, (members, _) in groups.items()} == {
         "ours (paper's setting)": [0, 1], "ours (algo.initial_logit_bias=-4)": [2],
         "ours (algo.initial_logit_bias=-4, algo.prior_scale=1.0)": [3]}
@@ -215,19 +215,19 @@ def test_a_key_an_older_config_lacks_means_what_its_absence_meant_and_a_named_fo
     (old / "config.yaml").write_text(_config_yaml("seed=0", drop="algo.prior_bias_draw"))
     option = fabricate(tmp_path / "old", task, "ours", 1, 0.1, 1.0, 50, 0.1, 0.2)
     (option / "config.yaml").write_text(_config_yaml("seed=1", "algo.initial_logit_bias=-4", drop="algo.prior_bias_draw"))
-    settings = {r.folder: r.setting for r in report.find_runs([tmp_path / "new", tmp_path / "old"])}
-    assert settings == {new: report.PAPER_SETTING, old: "algo.prior_bias_draw=fan_in",
+    settings = {r.folder: r.setting for r in run_groups.find_runs([tmp_path / "new", tmp_path / "old"])}
+    assert settings == {new: run_groups.PAPER_SETTING, old: "algo.prior_bias_draw=fan_in",
                         option: "algo.initial_logit_bias=-4, algo.prior_bias_draw=fan_in"}
     # the older runs alone: what both changed alike still keeps them from being the paper's setting
-    settings = {r.folder: r.setting for r in report.find_runs([tmp_path / "old"])}
+    settings = {r.folder: r.setting for r in run_groups.find_runs([tmp_path / "old"])}
     assert settings == {old: "algo.prior_bias_draw=fan_in", option: "algo.initial_logit_bias=-4, algo.prior_bias_draw=fan_in"}
     # a key of another algorithm is not read into LNT's settings (LNT has no priors): only its own absent keys
     lnt_new = fabricate(tmp_path / "lnt", task, "lnt", 0, 0.1, 2.0, 10, 0.3, 0.9)
     (lnt_new / "config.yaml").write_text(_config_yaml("seed=0", "algo=lnt"))
     lnt_old = fabricate(tmp_path / "lnt", task, "lnt", 1, 0.1, 2.0, 10, 0.3, 0.9)
     (lnt_old / "config.yaml").write_text(_config_yaml("seed=1", "algo=lnt", drop="forward.sampling"))
-    settings = {r.folder: r.setting for r in report.find_runs([tmp_path / "lnt"])}
-    assert settings == {lnt_new: report.PAPER_SETTING, lnt_old: "forward.sampling=transition"}
+    settings = {r.folder: r.setting for r in run_groups.find_runs([tmp_path / "lnt"])}
+    assert settings == {lnt_new: run_groups.PAPER_SETTING, lnt_old: "forward.sampling=transition"}
     # NAME=PATH: the runs under PATH are the setting NAME, told apart inside it by what differs between them
     report.main([f"release={tmp_path / 'new'}", f"before={tmp_path / 'old'}", "--out", str(tmp_path / "out")])
     table = (tmp_path / "out" / "table1.md").read_text()
@@ -281,7 +281,7 @@ def test_fig3_draws_each_groups_episodic_resets_beside_its_manual_resets_in_its_
     write_run(runs, "ours", 0, progress=_progress([2, 4, 6, 8], [3, 6, 9, 12]))
     write_run(runs, "ours", 1, progress=_progress([4, 6, 8, 10], [5, 8, 11, 14]))
     write_run(runs, "lnt", 0, progress=_progress([1, 2, 3, 4], [2, 3, 5, 6]))
-    fig = report.fig3_figure("peg_insertion_insert", report.find_runs([runs]))
+    fig = figures.draw_figure3("peg_insertion_insert", run_groups.find_runs([runs]))
     lines = _lines(fig.axes[1])
     # the mean of the two seeds' forward episodes: (3+5)/2, (6+8)/2, (9+11)/2, (12+14)/2
     assert list(lines["ours: episodic (n=2)"].get_ydata()) == [4, 7, 10, 13]
@@ -295,7 +295,7 @@ def test_fig3_draws_each_groups_episodic_resets_beside_its_manual_resets_in_its_
     legend = fig.axes[1].get_legend()
     assert {t.get_text() for t in legend.get_texts()} == set(lines)
     assert min(t.get_fontsize() for t in legend.get_texts()) >= 8
-    report.plt.close(fig)
+    figures.plt.close(fig)
 
 
 def test_fig3_of_a_cliff_task_counts_the_falls_into_the_ditch_per_phase(tmp_path):
@@ -306,7 +306,7 @@ def test_fig3_of_a_cliff_task_counts_the_falls_into_the_ditch_per_phase(tmp_path
     write_run(runs, "ours", 0, task="cliff_cheetah", progress=(header, [(1000, 1, 2, 0, 0), (2000, 3, 4, 2, 1)]))
     write_run(runs, "ours", 1, task="cliff_cheetah", progress=(header, [(1000, 2, 3, 1, 0), (2000, 4, 6, 4, 3)]))
     write_run(runs, "lnt_sparse", 0, task="cliff_cheetah", progress=(header, [(1000, 1, 1, 1, 1), (2000, 5, 5, 5, 1)]))
-    fig = report.fig3_figure("cliff_cheetah", report.find_runs([runs]))
+    fig = figures.draw_figure3("cliff_cheetah", run_groups.find_runs([runs]))
     assert len(fig.axes) == 3
     lines = _lines(fig.axes[2])
     # ours: forward (0+1)/2, (2+4)/2; reset (0+0)/2, (1+3)/2
@@ -316,29 +316,29 @@ def test_fig3_of_a_cliff_task_counts_the_falls_into_the_ditch_per_phase(tmp_path
     assert lines["ours: forward (n=2)"].get_color() == lines["ours: reset (n=2)"].get_color()
     assert lines["ours: reset (n=2)"].get_linestyle() == ":" and lines["ours: forward (n=2)"].get_linestyle() == "-"
     assert "ditch" in fig.axes[2].get_title() and fig.axes[2].get_ylim()[0] == 0 and not _texts(fig.axes[2])
-    report.plt.close(fig)
+    figures.plt.close(fig)
     # no fall yet in any run: said on the panel
     write_run(tmp_path / "calm", "ours", 0, task="cliff_cheetah", progress=(header, [(1000, 1, 2, 0, 0), (2000, 3, 4, 0, 0)]))
-    fig = report.fig3_figure("cliff_cheetah", report.find_runs([tmp_path / "calm"]))
+    fig = figures.draw_figure3("cliff_cheetah", run_groups.find_runs([tmp_path / "calm"]))
     assert _texts(fig.axes[2]) == ["no entry into the ditch so far"]
-    report.plt.close(fig)
+    figures.plt.close(fig)
     # two settings: the reset line is thin in its group's style with hollow markers, unlike any forward line
     write_run(runs, "ours", 2, task="cliff_cheetah", config=_config_yaml("algo.prior_scale=2", task="cliff_cheetah"),
               progress=(header, [(1000, 1, 2, 0, 0), (2000, 3, 4, 1, 1)]))
     write_run(runs, "ours", 3, task="cliff_cheetah", config=_config_yaml("algo.prior_scale=1", task="cliff_cheetah"),
               progress=(header, [(1000, 1, 2, 0, 0), (2000, 3, 4, 1, 1)]))
-    fig = report.fig3_figure("cliff_cheetah", report.find_runs([runs / "cliff_cheetah"]))
+    fig = figures.draw_figure3("cliff_cheetah", run_groups.find_runs([runs / "cliff_cheetah"]))
     looks = _looks(fig.axes[2])
     assert len(set(looks)) == len(looks)
     resets = [line for label, line in _lines(fig.axes[2]).items() if ": reset" in label]
     assert resets and all(line.get_marker() == "o" and line.get_markerfacecolor() == "none" for line in resets)
-    report.plt.close(fig)
+    figures.plt.close(fig)
     # a task without irrecoverable states logs the columns too (zeros): the two panels only; older logs alike
     write_run(runs, "ours", 0, progress=(header, [(1000, 1, 2, 0, 0), (2000, 3, 4, 0, 0)]))
     write_run(runs, "ours", 1, progress=_progress([1, 2], [1, 2]))
-    fig = report.fig3_figure("peg_insertion_insert", report.find_runs([runs / "peg_insertion_insert"]))
+    fig = figures.draw_figure3("peg_insertion_insert", run_groups.find_runs([runs / "peg_insertion_insert"]))
     assert len(fig.axes) == 2
-    report.plt.close(fig)
+    figures.plt.close(fig)
 
 
 def test_fig3_companion_lines_stay_apart_from_other_settings_and_say_when_they_leave_the_panel(tmp_path):
@@ -346,11 +346,11 @@ def test_fig3_companion_lines_stay_apart_from_other_settings_and_say_when_they_l
     write_run(runs, "ours", 0, progress=_progress([2, 4, 6, 8], [3, 6, 9, 12]))
     write_run(runs, "ours", 1, progress=_progress([4, 6, 8, 10], [5, 8, 11, 14]))
     write_run(runs, "lnt", 0, progress=_progress([1, 2, 3, 4], [50, 100, 150, 200]))
-    found = report.find_runs([runs])
+    found = run_groups.find_runs([runs])
     # two settings of ours, named as assign_settings names them
     ours = {r.summary["seed"]: r for r in found if r.algo == "ours"}
-    ours[0].setting, ours[1].setting = report.PAPER_SETTING, "algo.initial_logit_bias=-4"
-    fig = report.fig3_figure("peg_insertion_insert", found)
+    ours[0].setting, ours[1].setting = run_groups.PAPER_SETTING, "algo.initial_logit_bias=-4"
+    fig = figures.draw_figure3("peg_insertion_insert", found)
     ax = fig.axes[1]
     looks = _looks(ax)
     assert len(set(looks)) == len(looks) == 6  # ours twice and LNT, each manual and episodic
@@ -358,31 +358,31 @@ def test_fig3_companion_lines_stay_apart_from_other_settings_and_say_when_they_l
     # highest line left in it (ours' option: 14 episodic resets) and the legend names the count
     assert ax.get_ylim()[1] == pytest.approx(1.08 * 14)
     assert "LNT: episodic (n=1)\noff the scale: 200 at 4k steps" in _lines(ax)
-    report.plt.close(fig)
+    figures.plt.close(fig)
 
 
 def test_fig3_says_why_a_forward_return_panel_is_empty_or_flat(tmp_path):
     runs = tmp_path / "runs"
     config = "seed: 0\neval_every: 10000\ntask: {name: peg_insertion_insert, p_thresh: 0.1}\nalgo: {name: ours}\n"
     write_run(runs, "ours", 0, config=config, progress=_progress([1, 2, 3, 4], [1, 2, 3, 4]))
-    fig = report.fig3_figure("peg_insertion_insert", report.find_runs([runs]))
+    fig = figures.draw_figure3("peg_insertion_insert", run_groups.find_runs([runs]))
     assert _texts(fig.axes[0]) == ["no evaluation yet (every 10,000 steps)"]
-    report.plt.close(fig)
+    figures.plt.close(fig)
     write_run(runs, "lnt", 0, progress=_progress([1, 2, 3, 4], [1, 2, 3, 4]),
               eval=(["frames", "forward_return"], [(2000, 0.0), (4000, 0.0)]))
     write_run(runs, "lnt_sparse", 0, progress=_progress([1, 2, 3, 4], [1, 2, 3, 4]),
               eval=(["frames", "forward_return"], [(2000, 0.0), (4000, 0.5)]))
-    fig = report.fig3_figure("peg_insertion_insert", report.find_runs([runs]))
+    fig = figures.draw_figure3("peg_insertion_insert", run_groups.find_runs([runs]))
     assert _texts(fig.axes[0]) == ["LNT: forward return 0 at every evaluation so far\n"
                                    "ours: no evaluation yet (every 10,000 steps)"]
-    report.plt.close(fig)
+    figures.plt.close(fig)
 
 
 def test_success_rate_per_stretch_counts_the_resets_that_ended_in_the_centred_window():
     frames = [1000, 2000, 3000, 4000, 5000, 6000, 7000]
     successful = [0, 1, 1, 3, 3, 3, 3]
     manual = [1, 1, 2, 2, 4, 4, 4]
-    rate = report.success_rate_per_stretch(frames, successful, manual, 2000)
+    rate = figures.success_rate_per_stretch(frames, successful, manual, 2000)
     # at 1000: (0, 2000] holds 1 success and 1 manual reset; at 2000: (1000, 3000] 1 and 1; at 3000:
     # (2000, 4000] 2 and 1; at 4000: (3000, 5000] 2 and 2; at 5000: (4000, 6000] 0 and 2; at 6000 and 7000
     # nothing ended
@@ -411,8 +411,8 @@ def test_diagnostics_series_are_told_apart_and_say_what_they_plot(tmp_path, monk
     for seed in range(3):
         write_run(runs, "ours", seed, steps=40000, diagnostics=_diagnostics(0.1 * seed), resets=_resets(),
                   progress=_long_progress())
-    members = report.find_runs([runs])
-    fig = report.diagnostics_figure("peg_insertion_insert", "ours", "", members)
+    members = run_groups.find_runs([runs])
+    fig = figures.draw_diagnostics("peg_insertion_insert", "ours", "", members)
     score, probes, success, distance = fig.axes
     for ax in fig.axes:
         looks = _looks(ax)
@@ -434,13 +434,13 @@ def test_diagnostics_series_are_told_apart_and_say_what_they_plot(tmp_path, monk
     assert list(_lines(distance)["seed 1: success"].get_ydata()) == [0.5, 0.4]
     assert any("not a bound on this distance" in " ".join(text.split()) for text in _texts(distance))
     assert not any(label.startswith("reset success") for label in _lines(distance))
-    report.plt.close(fig)
+    figures.plt.close(fig)
     # a task whose check is a bound on this distance gets its line instead
-    monkeypatch.setitem(report.RESET_SUCCESS, "peg_insertion_insert", ("within 0.5 of the start", 0.5))
-    fig = report.diagnostics_figure("peg_insertion_insert", "ours", "", members)
+    monkeypatch.setitem(figures.RESET_SUCCESS, "peg_insertion_insert", ("within 0.5 of the start", 0.5))
+    fig = figures.draw_diagnostics("peg_insertion_insert", "ours", "", members)
     line = _lines(fig.axes[3])["reset success below 0.5"]
     assert list(line.get_ydata()) == [0.5, 0.5] and not _texts(fig.axes[3])
-    report.plt.close(fig)
+    figures.plt.close(fig)
 
 
 def test_lnt_diagnostics_say_q_and_q_thresh_where_they_plot_q(tmp_path):
@@ -450,7 +450,7 @@ def test_lnt_diagnostics_say_q_and_q_thresh_where_they_plot_q(tmp_path):
                   resets=_resets(), progress=_long_progress(),
                   config=f"seed: {seed}\ntask: {{name: peg_insertion_insert, p_thresh: 0.1}}\n"
                          "algo: {name: lnt, threshold: 20.0}\n")
-    fig = report.diagnostics_figure("peg_insertion_insert", "lnt", "", report.find_runs([runs]))
+    fig = figures.draw_diagnostics("peg_insertion_insert", "lnt", "", run_groups.find_runs([runs]))
     score, probes = fig.axes[:2]
     assert score.get_ylabel() == probes.get_ylabel() == "Q: reset Q-ensemble's minimum"
     assert "(Q)" in score.get_title() and "(Q)" in probes.get_title()
@@ -461,7 +461,7 @@ def test_lnt_diagnostics_say_q_and_q_thresh_where_they_plot_q(tmp_path):
     labels = legend_texts + [line.get_label() for ax in (score, probes) for line in ax.get_lines()]
     assert not any("p_thresh" in text or text.endswith(" p") for text in labels)
     assert _lines(score)["Q_thresh = 20"].get_ydata()[0] == 20.0
-    report.plt.close(fig)
+    figures.plt.close(fig)
 
 
 def test_fig5_is_drawn_for_runs_without_triggers_and_says_so(tmp_path):
@@ -469,15 +469,15 @@ def test_fig5_is_drawn_for_runs_without_triggers_and_says_so(tmp_path):
     write_run(runs, "ours", 0, progress=_progress([1, 2, 3, 4], [1, 2, 3, 4]))
     written = report.report([runs], tmp_path / "out")
     assert [p.name for p in written["fig5"]] == ["fig5_peg_insertion_insert_ours.png"]
-    fig = report.fig5_figure("peg_insertion_insert", "ours", "", report.find_runs([runs]))
+    fig = figures.draw_figure5("peg_insertion_insert", "ours", "", run_groups.find_runs([runs]))
     assert _texts(fig.axes[0]) == ["no triggered reset in this run (4,000 steps)"]
-    report.plt.close(fig)
+    figures.plt.close(fig)
     write_run(runs, "ours", 1, progress=_progress([1, 2, 3, 4], [1, 2, 3, 4]),
               triggers=(["frames", "steps", "value", "observation"], [(1500, 10, 0.3, "0.3 0")]))
-    fig = report.fig5_figure("peg_insertion_insert", "ours", "", report.find_runs([runs]))
+    fig = figures.draw_figure5("peg_insertion_insert", "ours", "", run_groups.find_runs([runs]))
     assert _texts(fig.axes[0]) == ["no triggered reset in seed 0"]
     assert [t.get_text() for t in fig.axes[0].get_legend().get_texts()] == ["seed 1"]
-    report.plt.close(fig)
+    figures.plt.close(fig)
 
 
 def test_fig5_of_a_cliff_task_draws_the_edge_and_marks_the_triggers_that_came_too_late(tmp_path):
@@ -488,7 +488,7 @@ def test_fig5_of_a_cliff_task_draws_the_edge_and_marks_the_triggers_that_came_to
     write_run(runs, "ours", 0, task="cliff_cheetah", config=config, progress=_progress([1, 2, 3, 4], [1, 2, 3, 4]),
               triggers=(["frames", "steps", "value", "irrecoverable", "observation"],
                         [(1000, 40, 3.0, 0, "3 0"), (2000, 90, 13.5, 0, "13.5 0"), (3000, 120, 14.6, 1, "14.6 -1.5")]))
-    fig = report.fig5_figure("cliff_cheetah", "ours", "", report.find_runs([runs]))
+    fig = figures.draw_figure5("cliff_cheetah", "ours", "", run_groups.find_runs([runs]))
     ax = fig.axes[0]
     assert _lines(ax)["cliff edge (x = 14)"].get_ydata()[0] == 14.0
     dots, crosses = ax.collections
@@ -496,20 +496,20 @@ def test_fig5_of_a_cliff_task_draws_the_edge_and_marks_the_triggers_that_came_to
     assert crosses.get_offsets().tolist() == [[3000.0, 14.6]]
     assert [t.get_text() for t in ax.get_legend().get_texts()] == [
         "seed 0", "seed 0: already irrecoverable (1)", "cliff edge (x = 14)"]
-    report.plt.close(fig)
+    figures.plt.close(fig)
     # an older triggers.csv without the column, and a task without a cliff: no crosses, no edge
     write_run(runs, "ours", 1, progress=_progress([1, 2], [1, 2]),
               triggers=(["frames", "steps", "value", "observation"], [(1500, 10, 0.3, "0.3 0")]))
-    fig = report.fig5_figure("peg_insertion_insert", "ours", "", report.find_runs([runs / "peg_insertion_insert"]))
+    fig = figures.draw_figure5("peg_insertion_insert", "ours", "", run_groups.find_runs([runs / "peg_insertion_insert"]))
     assert len(fig.axes[0].collections) == 1 and "cliff edge (x = 14)" not in _lines(fig.axes[0])
-    report.plt.close(fig)
+    figures.plt.close(fig)
 
 
 def test_three_or_more_seeds_get_the_means_bootstrap_interval(tmp_path):
     runs = tmp_path / "runs"
     for seed, manual in enumerate((10, 20, 30, 40)):
         fabricate(runs, "cliff_cheetah", "lnt", seed, 0.05, 1.0, manual, 0.3, 0.9)
-    table = report.table1(report.find_runs([runs]))
+    table = report.table1(run_groups.find_runs([runs]))
     # manual 10, 20, 30, 40: mean 25, population std 11.18; a bootstrap mean of these lies within [10, 40]
     cell = next(line for line in table.splitlines() if line.startswith("| cliff-cheetah | LNT |")).split(" | ")[6]
     assert cell.startswith("25 ± 11 [") and cell.endswith("] (paper 835)")
@@ -522,9 +522,9 @@ def test_the_diagnostics_figure_plots_each_runs_saturation_when_logged(tmp_path)
     progress = (["frames", "successful_resets", "manual_resets", "reset_saturation", "forward_saturation"],
                 [(1000, 0, 1, 0.25, 0.0), (2000, 1, 1, 0.5, 0.1)])
     write_run(runs, "ours", 0, steps=2000, diagnostics=_diagnostics(0.0), resets=_resets(), progress=progress)
-    fig = report.diagnostics_figure("peg_insertion_insert", "ours", "", report.find_runs([runs]))
+    fig = figures.draw_diagnostics("peg_insertion_insert", "ours", "", run_groups.find_runs([runs]))
     assert len(fig.axes) == 5
     lines = _lines(fig.axes[4])
     assert list(lines["seed 0: reset"].get_ydata()) == [25.0, 50.0]  # in percent
     assert list(lines["seed 0: forward"].get_ydata()) == [0.0, 10.0]
-    report.plt.close(fig)
+    figures.plt.close(fig)

@@ -1,18 +1,16 @@
-"""The screening command (recipes/screen.py): seeds, the grid's command, the per-seed entries, the interval and
+"""The screening command (recipes/analysis/screen.py): seeds, the grid's command, the per-seed entries, the interval and
 the table, on run folders made here with counts chosen by hand."""
 from __future__ import annotations
 
 import json
 import math
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "recipes"))
 
-import screen  # noqa: E402
+from torchrl_reset_recipes.analysis import screen
 
 
 def test_seed_lists_and_ranges():

@@ -1,15 +1,13 @@
-"""recipes/stretches.py: a run stretch by stretch, on run folders written by hand."""
+"""recipes/analysis/stretches.py: a run stretch by stretch, on run folders written by hand."""
 from __future__ import annotations
 
 import csv
-import sys
 from pathlib import Path
 
 import pytest
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "recipes"))
 
-import stretches  # noqa: E402
+from torchrl_reset_recipes.analysis import stretches
 
 PROGRESS = ["frames", "forward_steps", "reset_steps", "forward_episodes", "irrecoverable_forward", "irrecoverable_reset"]
 

@@ -11,13 +11,8 @@ from torchrl.envs.utils import check_env_specs
 
 from torchrl_reset_envs import UR3Env, make_env
 from torchrl_reset_envs.ur3 import PEG_TARGET, REACHER_GOAL, console_manual_reset
-from torchrl_reset_envs.ur3_backends import (
-    ConnectionLost,
-    RobotFault,
-    RobotState,
-    RTDEBackend,
-    UR3Backend,
-)
+from torchrl_reset_envs.ur3_backends import RobotFault, RobotState, UR3Backend
+from torchrl_reset_envs.ur3_rtde import ConnectionLost, RTDEBackend
 from torchrl_reset_envs.ur3_model import HOME_Q, VELOCITY_LIMITS, build_ur3_spec, flange_pose
 
 from fake_ur_rtde import FakeURController

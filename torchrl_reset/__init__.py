@@ -2,7 +2,8 @@
 
 Implements Kim et al., "Automating Reinforcement Learning with Example-based Resets" (RA-L 2022).
 """
-from .collector import DualCollector, find_trigger_transforms
+from .collector import DualCollector
+from .collector_env import find_trigger_transforms
 from .ensemble import (EnsembleValueOperator, prior_bias_bound, reduce_members, success_classifier, success_probability,
                        with_prior)
 from .example_buffer import InitialStateBuffer

@@ -23,6 +23,7 @@ from __future__ import annotations
 import argparse
 import csv
 import importlib
+import importlib.util
 import subprocess
 import sys
 import tempfile
@@ -44,7 +45,11 @@ def tier1_env_class():
         source = subprocess.run(["git", "-C", str(REPO), "show", f"{BEFORE}:envs/{name}"], check=True,
                                 capture_output=True, text=True).stdout
         (package / name).write_text(source)
-    sys.path.insert(0, str(folder))
+    # the old package loaded from its folder under its own name (it imports its modules relatively)
+    spec = importlib.util.spec_from_file_location("peg_tier1", package / "__init__.py",
+                                                  submodule_search_locations=[str(package)])
+    sys.modules["peg_tier1"] = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(sys.modules["peg_tier1"])
     return importlib.import_module("peg_tier1.peg").PegInsertionEnv
 
 

@@ -4,16 +4,14 @@ by stretch of training, per seed, from the run folders' files.
     python results/100000-release/probes/compare.py --new runs/release/peg_insertion_insert/ours \\
         --old results/100000/peg_insertion_insert/ours --seeds 0 1 --upto 30000 --window 10000
 
-For each seed, the two runs' stretch tables side by side, as ``recipes/stretches.py`` makes them (its
+For each seed, the two runs' stretch tables side by side, as ``recipes/analysis/stretches.py`` makes them (its
 columns: triggered resets, forward episodes, forward share, reset episodes, successful ones, manual
 resets, the success rate).
 """
 import argparse
-import sys
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[3] / "recipes"))
-from stretches import markdown, stretches  # noqa: E402
+from torchrl_reset_recipes.analysis.stretches import markdown, stretches
 
 
 def main():

@@ -23,20 +23,19 @@ sees at the start of a forward episode).
 """
 import argparse
 import csv
-import sys
 from pathlib import Path
 
 import torch
 from hydra import compose, initialize_config_dir
 
 ROOT = Path(__file__).resolve().parents[3]
-sys.path.insert(0, str(ROOT / "recipes"))
-from agents import make_reset_agent  # noqa: E402
-from buffers import make_buffers  # noqa: E402
-from learner import make_collector  # noqa: E402
-from train import update  # noqa: E402
-from agents import make_forward_agent  # noqa: E402
-from task_envs import make_task_env, task_dimensions  # noqa: E402
+from torchrl_reset_recipes.training.agents import make_reset_agent
+from torchrl_reset_recipes.training.run_spec import run_spec
+from torchrl_reset_recipes.training.buffers import make_buffers
+from torchrl_reset_recipes.training.learner import make_collector
+from torchrl_reset_recipes.train import update
+from torchrl_reset_recipes.training.agents import make_forward_agent
+from torchrl_reset_recipes.training.task_envs import make_task_env, task_dimensions
 
 from torchrl_reset import DualCollector, success_probability  # noqa: E402
 
@@ -53,9 +52,10 @@ def failed_reset_episodes(min_rows: int, settings=()):
     cfg = config(["seed=0", "algo.threshold=1e-12"], settings)  # a threshold nothing falls below: no trigger
     torch.manual_seed(0)
     obs_dim, action_spec = task_dimensions(cfg)
-    forward, reset = make_forward_agent(cfg, obs_dim, action_spec), make_reset_agent(cfg, obs_dim, action_spec)
-    env, _ = make_task_env(cfg, reset)
-    collector = make_collector(cfg, env, forward, reset)
+    spec = run_spec(cfg, check=False)
+    forward, reset = make_forward_agent(spec, obs_dim, action_spec), make_reset_agent(spec, obs_dim, action_spec)
+    env, _ = make_task_env(spec, reset)
+    collector = make_collector(spec, env, forward, reset)
     episodes, current, kept, outcomes = [], [], 0, {"success": 0, "manual": 0}
     for batch in collector:
         if DualCollector.phase_of(batch) == "reset":
@@ -84,8 +84,8 @@ def at_initialisation(episodes, seeds, rows=2000, settings=()):
             run_cfg = config([f"seed={seed}", f"algo.prior_bias_draw={draw}"], settings)
             torch.manual_seed(seed)
             obs_dim, action_spec = task_dimensions(run_cfg)
-            agent = make_reset_agent(run_cfg, obs_dim, action_spec)
-            _, replay = make_buffers(run_cfg)
+            agent = make_reset_agent(run_spec(run_cfg, check=False), obs_dim, action_spec)
+            _, replay = make_buffers(run_spec(run_cfg, check=False))
             for episode in episodes:
                 replay.extend(episode.select(*REPLAY_KEYS, strict=False))
             sample = replay.sample(rows)
@@ -105,8 +105,8 @@ def train_and_watch(cfg, episodes, examples, forward_actor, seed, draw, updates,
     run_cfg = config([f"seed={seed}", f"algo.prior_bias_draw={draw}", f"target_init={targets}"], settings)
     torch.manual_seed(seed)
     obs_dim, action_spec = task_dimensions(run_cfg)
-    agent = make_reset_agent(run_cfg, obs_dim, action_spec)
-    _, replay = make_buffers(run_cfg)
+    agent = make_reset_agent(run_spec(run_cfg, check=False), obs_dim, action_spec)
+    _, replay = make_buffers(run_spec(run_cfg, check=False))
     for episode in episodes:
         replay.extend(episode.select(*REPLAY_KEYS, strict=False))
     rows = torch.cat([e.select("observation", "action") for e in episodes])

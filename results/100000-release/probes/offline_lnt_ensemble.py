@@ -22,7 +22,6 @@ reset check (one step from success: those should stay high).
 """
 import argparse
 import csv
-import sys
 from pathlib import Path
 
 import torch
@@ -30,12 +29,11 @@ from hydra import compose, initialize_config_dir
 from tensordict import TensorDict
 
 ROOT = Path(__file__).resolve().parents[3]
-sys.path.insert(0, str(ROOT / "recipes"))
-from agents import make_reset_agent  # noqa: E402
-from reset_agents import reset_kind  # noqa: E402
-from saved_runs import load_replay, run_table  # noqa: E402
-from task_envs import task_dimensions  # noqa: E402
-from train import update  # noqa: E402
+from torchrl_reset_recipes.training.agents import make_reset_agent
+from torchrl_reset_recipes.training.run_spec import run_spec
+from torchrl_reset_recipes.analysis.saved_runs import load_replay, model_values, run_table
+from torchrl_reset_recipes.training.task_envs import task_dimensions
+from torchrl_reset_recipes.train import update
 
 
 def config(overrides):
@@ -63,28 +61,19 @@ def rows_at(checkpoint: Path, upto: int) -> tuple[TensorDict, TensorDict, int, i
     return data[0], data[1], forward_rows, reset_rows
 
 
-def minimum(model, obs, act, chunk=20000):
-    values = []
-    with torch.no_grad():
-        for i in range(0, obs.shape[0], chunk):
-            td = TensorDict({"observation": obs[i:i + chunk], "action": act[i:i + chunk]}, batch_size=[min(chunk, obs.shape[0] - i)])
-            values.append(model(td)["state_action_value"])
-    return torch.cat(values)
-
-
 def train_and_watch(forward, replay, seed, scale, updates, every, batch_size=256):
     cfg = config([f"seed={seed}", f"algo.prior_scale={scale}"])
     torch.manual_seed(seed)
     obs_dim, action_spec = task_dimensions(cfg)
-    agent = make_reset_agent(cfg, obs_dim, action_spec)
-    kind, q_thresh = reset_kind(cfg), float(cfg.algo.threshold)
+    agent = make_reset_agent(run_spec(cfg, check=False), obs_dim, action_spec)
+    kind, q_thresh = run_spec(cfg, check=False).kind, float(cfg.algo.threshold)
     near = replay[replay["next", "reset_success"].reshape(-1)]
     generator = torch.Generator().manual_seed(seed)
     out = []
 
     def watch(step):
-        fq = minimum(agent.model, forward["observation"], forward["action"])
-        sq = minimum(agent.model, near["observation"], near["action"])
+        fq = model_values(agent.model, forward["observation"], forward["action"])
+        sq = model_values(agent.model, near["observation"], near["action"])
         fmin, smin = fq.min(-1).values, sq.min(-1).values
         out.append({"seed": seed, "prior_scale": scale, "updates": step,
                     "forward_min_mean": float(fmin.mean()), "forward_below_q_thresh": float((fmin < q_thresh).float().mean()),
@@ -94,7 +83,7 @@ def train_and_watch(forward, replay, seed, scale, updates, every, batch_size=256
     watch(0)
     for step in range(1, updates + 1):
         sample = replay[torch.randint(replay.shape[0], (batch_size,), generator=generator)].clone()
-        sample = kind.prepare(sample, {}, None, cfg)
+        sample = kind.prepare(sample, {}, None, run_spec(cfg, check=False))
         update(agent, sample, agent.loss, release_order=True)  # the recipe's update
         if step % every == 0:
             watch(step)

@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import argparse
 import csv
-import sys
 from collections import Counter
 from pathlib import Path
 
@@ -25,10 +24,9 @@ import torch
 from tensordict import TensorDict
 
 ROOT = Path(__file__).resolve().parents[3]
-sys.path.insert(0, str(ROOT / "recipes"))
 
-from run_files import checkpoint_step  # noqa: E402
-from saved_runs import load_agents, run_config, run_table  # noqa: E402
+from torchrl_reset_recipes.training.checkpoints import checkpoint_step
+from torchrl_reset_recipes.analysis.saved_runs import load_agents, run_config, run_table
 
 
 def fixed_states(run: Path, count: int) -> torch.Tensor:

@@ -23,7 +23,6 @@ from __future__ import annotations
 import argparse
 import math
 import statistics
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -33,11 +32,10 @@ from tensordict import TensorDict
 from torchrl_reset_envs import make_gym_env
 
 ROOT = Path(__file__).resolve().parents[3]
-sys.path.insert(0, str(ROOT / "recipes"))
 
-from config_checks import reset_horizon  # noqa: E402
-from saved_runs import load_agents, run_config, run_table  # noqa: E402
-from stretches import resets_by_start  # noqa: E402
+from torchrl_reset_recipes.training.run_spec import reset_horizon
+from torchrl_reset_recipes.analysis.saved_runs import load_agents, run_config, run_table
+from torchrl_reset_recipes.analysis.stretches import resets_by_start
 
 
 def wrapped(angle: float) -> float:

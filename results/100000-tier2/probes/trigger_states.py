@@ -13,12 +13,10 @@ from __future__ import annotations
 import argparse
 import math
 import statistics
-import sys
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[3] / "recipes"))
-from saved_runs import run_table  # noqa: E402
-from stretches import keyed_by_start  # noqa: E402
+from torchrl_reset_recipes.analysis.saved_runs import run_table
+from torchrl_reset_recipes.analysis.stretches import keyed_by_start
 
 NQ = 9  # cliff-cheetah: qpos (9) then qvel (9)
 

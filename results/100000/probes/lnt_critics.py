@@ -10,14 +10,12 @@ member's TD(0) target and error as the update computes them. The shaped
 reset reward lies in [0, 1], so every true value lies in [0, 1 / (1 - gamma)] = [0, 100].
 """
 import argparse
-import sys
 from pathlib import Path
 
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[3] / "recipes"))
-from reset_agents import lnt_batch  # noqa: E402
-from saved_runs import load_agents, load_replay, run_config  # noqa: E402
+from torchrl_reset_recipes.training.reset_agents import lnt_batch
+from torchrl_reset_recipes.analysis.saved_runs import load_agents, load_replay, run_config
 
 
 def main(run: str, step: int, csv_path: str | None = None, rows: int = 4096) -> None:

@@ -20,7 +20,6 @@ it, the denser that "sparse" reward is. This probe measures, on the task's own m
 from __future__ import annotations
 
 import argparse
-import sys
 from pathlib import Path
 
 import mujoco
@@ -29,8 +28,7 @@ import numpy as np
 from torchrl_reset_envs import PegInsertionEnv
 from torchrl_reset_envs.peg import PEG_GOAL, PEG_START, _RANGES
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[3] / "recipes"))
-from saved_runs import run_table  # noqa: E402
+from torchrl_reset_recipes.analysis.saved_runs import run_table
 
 CHECK = 0.2  # insert task: at the initial state when d_start < 0.2
 

@@ -32,7 +32,6 @@ action leans (``sign(a) * df/da > 0``), and the slope's mean size.
 from __future__ import annotations
 
 import argparse
-import sys
 import tempfile
 import types
 from pathlib import Path
@@ -41,9 +40,9 @@ import torch
 from hydra import compose, initialize_config_dir
 
 ROOT = Path(__file__).resolve().parents[3]
-sys.path.insert(0, str(ROOT / "recipes"))
-import train  # noqa: E402
-from single_run import build_run  # noqa: E402
+from torchrl_reset_recipes import train
+from torchrl_reset_recipes.training.run_spec import run_spec
+from torchrl_reset_recipes.training.single_run import build_run
 
 VARIANTS = ("pi(s*)", "pi(s*) + replay noise", "uniform", "replay actions shuffled", "uniform and shuffled")
 
@@ -121,7 +120,7 @@ def main(argv=None) -> None:
         print(f"\nseed {seed}, from its checkpoint at {args.steps} steps, {args.updates} more reset updates\n")
         header = None
         for variant in VARIANTS:
-            run = build_run(config(seed, folder, args.steps, "resume=true"), "ieee")
+            run = build_run(run_spec(config(seed, folder, args.steps, "resume=true"), check=False), "ieee")
             try:
                 rows = run.reset_rb[:]
                 with torch.no_grad():

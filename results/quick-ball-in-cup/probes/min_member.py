@@ -12,15 +12,13 @@ out of the action box from ``a`` (``sign(a) * d/da > 0``, per action entry, wher
 the actor's tanh is saturated (its input beyond +-3, where the gradient through it is below 1%).
 """
 import argparse
-import sys
 from pathlib import Path
 
 import torch
 
 ROOT = Path(__file__).resolve().parents[3]
-sys.path.insert(0, str(ROOT / "recipes"))
-from run_files import Checkpoints  # noqa: E402
-from saved_runs import latest_checkpoint, load_agents, load_replay  # noqa: E402
+from torchrl_reset_recipes.training.checkpoints import Checkpoints
+from torchrl_reset_recipes.analysis.saved_runs import latest_checkpoint, load_agents, load_replay
 
 from torchrl_reset import EnsembleValueOperator  # noqa: E402
 

@@ -8,12 +8,10 @@ prints, over its last ``--last`` rows: the mean of |a|, the share of action entr
 each action dimension's mean and standard deviation.
 """
 import argparse
-import sys
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[3]
-sys.path.insert(0, str(ROOT / "recipes"))
-from saved_runs import latest_checkpoint, load_replay  # noqa: E402
+from torchrl_reset_recipes.analysis.saved_runs import latest_checkpoint, load_replay
 
 
 def reset_actions(run: Path, last: int):

@@ -19,14 +19,13 @@ import torchrl
 from omegaconf import DictConfig, OmegaConf
 from tqdm import tqdm
 
-from buffers import fallback_count, restore_fallback_count
-from reset_agents import reset_kind
-from absent_keys import setting
-from agents import normalised_action
-from diagnostics import DIAGNOSTIC_FIELDS, RESET_FIELDS, ResetDistances, TriggerScores, probe_classifier
+from torchrl_reset_recipes.training.buffers import fallback_count, restore_fallback_count
+from torchrl_reset_recipes.training.run_spec import RunSpec
+from torchrl_reset_recipes.training.agents import normalised_action
+from torchrl_reset_recipes.training.diagnostics import DIAGNOSTIC_FIELDS, RESET_FIELDS, ResetDistances, TriggerScores, probe_classifier
 from torchrl_reset.actor_heads import saturation
-from run_files import CsvTable, code_version, processor_name, reset_outcomes_by_quarter
-from task_envs import safety_counters
+from torchrl_reset_recipes.training.run_folder import CsvTable, code_version, processor_name, reset_outcomes_by_quarter
+from torchrl_reset_recipes.training.task_envs import safety_counters
 
 log = logging.getLogger("torchrl_reset.train")
 
@@ -67,8 +66,9 @@ def make_loggers(cfg: DictConfig, run_dir: Path) -> list:
 class RunRecord:
     """The run's tables and counters of what happened; ``history`` travels in every checkpoint."""
 
-    def __init__(self, cfg: DictConfig, run_dir: Path, collector, trigger) -> None:
-        self.cfg, self.run_dir, self.collector, self.trigger = cfg, run_dir, collector, trigger
+    def __init__(self, spec: RunSpec, run_dir: Path, collector, trigger) -> None:
+        cfg = spec.cfg
+        self.spec, self.cfg, self.run_dir, self.collector, self.trigger = spec, cfg, run_dir, collector, trigger
         self.progress = CsvTable(run_dir / "progress.csv", PROGRESS_FIELDS)
         self.evals = CsvTable(run_dir / "eval.csv", EVAL_FIELDS)
         self.triggers = CsvTable(run_dir / "triggers.csv", TRIGGER_FIELDS)
@@ -79,7 +79,7 @@ class RunRecord:
         self.history = {"eval_returns": [], "last_losses": {}, "elapsed": 0.0}
         self.curriculum_index = int(cfg.task.curriculum.index)
         self.heat_up = int(cfg.heat_up)
-        self.heads = {"forward": "tanh", "reset": setting(cfg, "reset.actor.head")}
+        self.heads = {"forward": "tanh", "reset": spec["reset.actor.head"]}
         self.window = Saturation.empty()  # this log window's counts, per phase
         self.last_window = {}  # the last log row's saturation entries
 
@@ -193,7 +193,7 @@ class RunRecord:
         reset_rb = learner.reset_rb
         count = fallback_count(reset_rb)
         with torch.random.fork_rng(devices=[]):  # the probe's samples leave training's random stream as it was
-            probe = probe_classifier(reset_kind(self.cfg), learner.reset.model, learner.reset.actor,
+            probe = probe_classifier(self.spec.kind, learner.reset.model, learner.reset.actor,
                                      self.collector.example_buffer, learner.forward_rb, reset_rb, self.trigger.threshold)
         restore_fallback_count(reset_rb, count)  # the probe's own sample does not count
         fallbacks = "" if count is None else count
@@ -213,8 +213,10 @@ class RunRecord:
         quarters = reset_outcomes_by_quarter(self.resets.path, collector.frames, c["reset_episodes"])
         summary = {
             "task": cfg.task.name, "algo": cfg.algo.name, "seed": int(cfg.seed),
-            # the threshold the trigger used (ours: algo.threshold when set, else the task's p_thresh)
-            "p_thresh": float(self.trigger.threshold) if reset_kind(cfg).scores_probability else float(cfg.task.p_thresh),
+            # ours: the threshold the trigger used (algo.threshold when set, else the task's p_thresh); LNT: the
+            # task's p_thresh, which it does not use (the report groups runs by it); the threshold it used:
+            "p_thresh": float(self.trigger.threshold) if self.spec.kind.scores_probability else float(cfg.task.p_thresh),
+            "trigger_threshold": float(self.trigger.threshold),  # ours: p_thresh (a probability); LNT: Q_thresh
             "steps": collector.frames, "finished": finished,
             "average_return": float(np.mean(returns)) if returns else None,
             "manual_resets": c["manual_resets"],

@@ -1,10 +1,10 @@
 """Many seeds of one configuration side by side, then one table and one figure across configurations.
 
     # seeds 0-9 of one configuration, two processes at a time (Hydra -m, joblib, one torch thread each)
-    python recipes/screen.py run release --seeds 0-9 --jobs 2 -- preset=quick task=ball_in_cup_catch
-    python recipes/screen.py run preact --seeds 0-9 -- preset=quick task=ball_in_cup_catch reset.actor.preact_penalty=0.001
+    python recipes/analysis/screen.py run release --seeds 0-9 --jobs 2 -- preset=quick task=ball_in_cup_catch
+    python recipes/analysis/screen.py run preact --seeds 0-9 -- preset=quick task=ball_in_cup_catch reset.actor.preact_penalty=0.001
     # the table (screening.md) and the strip plot (screening.png) of every configuration's runs
-    python recipes/screen.py table runs/screening --out results/screening
+    python recipes/analysis/screen.py table runs/screening --out results/screening
 
 ``run`` puts seed ``k`` of configuration ``NAME`` in ``<root>/NAME/seed<k>`` (``--root``, default
 ``runs/screening``) with ``resume=auto``: a grid stopped part-way is continued by the same command. ``table``
@@ -26,10 +26,11 @@ from pathlib import Path
 
 import numpy as np
 
+from torchrl_reset_recipes import TRAIN_SCRIPT
+
 __all__ = ["seed_list", "grid_command", "read_seed", "read_configuration", "bootstrap_interval", "screening_table",
            "screening_figure", "HOLDS_AT", "main"]
 
-RECIPES = Path(__file__).resolve().parent
 #: a seed holds when at least this share of its last quarter's reset episodes got back to the start
 HOLDS_AT = 0.5
 #: the table's columns: summary entry, heading, kind (count, share or number)
@@ -59,7 +60,7 @@ def grid_command(name: str, seeds: list[int], overrides: list[str], root: str, j
     """The Hydra -m command running ``seeds`` of configuration ``name`` (``jobs`` processes at a time)."""
     if "/" in name or not name:
         raise ValueError(f"a configuration's name is one folder name, got {name!r}")
-    return [sys.executable, str(RECIPES / "train.py"), "-m", *overrides, f"seed={','.join(map(str, seeds))}",
+    return [sys.executable, str(TRAIN_SCRIPT), "-m", *overrides, f"seed={','.join(map(str, seeds))}",
             "threads=1", "progress_bar=false", "resume=auto", f"run_dir={root}/{name}/seed${{seed}}",
             f"hydra.sweep.dir={root}/{name}/multirun", f"hydra.launcher.n_jobs={jobs}"]
 

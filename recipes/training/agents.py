@@ -7,7 +7,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import torch
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import OmegaConf
 from tensordict import TensorDict
 from tensordict.nn import NormalParamExtractor, TensorDictModule, TensorDictSequential
 from torch import nn
@@ -15,18 +15,17 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl.modules import OrnsteinUhlenbeckProcessModule, ProbabilisticActor, TanhModule, TanhNormal
 from torchrl.objectives import SoftUpdate
 
-from absent_keys import ABSENT_KEYS, setting
 from torchrl_reset import ResetTriggerTransform, accel
 from torchrl_reset.actor_heads import EntropyBonus, InvertingGradientHead, actor_penalties
 
-from reset_agents import reset_kind
+from torchrl_reset_recipes.training.run_spec import RunSpec
 
 __all__ = ["ACTOR_HEADS", "speed_components", "make_actor", "normalised_action", "ActorTerms", "make_actor_terms", "with_exploration", "exploration_settings", "make_adam", "Agent", "make_forward_agent", "make_reset_agent", "make_trigger", "reset_tau"]
 
 
-def speed_components(cfg: DictConfig) -> accel.Components:
+def speed_components(spec: RunSpec) -> accel.Components:
     """The fast classes (``speed.accelerate: true``, the default) or the plain reference ones."""
-    return accel.components(bool(OmegaConf.select(cfg, "speed.accelerate", default=True)))
+    return accel.components(bool(spec["speed.accelerate"]))
 
 
 #: the reset actor's output heads (``reset.actor.head``): the release's deterministic tanh, the linear output with
@@ -101,11 +100,11 @@ class ActorTerms:
         return total
 
 
-def make_actor_terms(cfg: DictConfig, actor, action_dim: int) -> ActorTerms | None:
+def make_actor_terms(spec: RunSpec, actor, action_dim: int) -> ActorTerms | None:
     """The terms ``reset.actor`` adds to the reset actor's loss, or None where it adds none (the release)."""
-    head = setting(cfg, "reset.actor.head")
-    preact, l2 = float(setting(cfg, "reset.actor.preact_penalty")), float(setting(cfg, "reset.actor.action_l2"))
-    entropy = setting(cfg, "reset.actor.entropy")
+    head = spec["reset.actor.head"]
+    preact, l2 = float(spec["reset.actor.preact_penalty"]), float(spec["reset.actor.action_l2"])
+    entropy = spec["reset.actor.entropy"]
     bonus = None
     if head == "tanh_normal":
         bonus = (EntropyBonus(AUTO_ENTROPY_INIT, target_entropy=-float(action_dim)) if entropy == "auto"
@@ -120,33 +119,31 @@ def make_actor_terms(cfg: DictConfig, actor, action_dim: int) -> ActorTerms | No
 AUTO_ENTROPY_INIT = 0.01
 
 
-def with_exploration(actor, action_spec, cfg: DictConfig, head: str = "tanh") -> TensorDictSequential:
+def with_exploration(actor, action_spec, spec: RunSpec, head: str = "tanh") -> TensorDictSequential:
     """The policy plus Ornstein-Uhlenbeck noise; ``exploration.clip: false`` (the release) leaves the noisy
     action outside the action box (the env clamps it at the motors' range; buffers and trigger see it as drawn).
     A ``tanh_normal`` actor explores by its own samples and gets no noise."""
     if head == "tanh_normal":
         return actor
-    settings = exploration_settings(cfg)
+    settings = exploration_settings(spec)
     noise = OrnsteinUhlenbeckProcessModule(
         spec=action_spec, eps_init=1.0, eps_end=1.0, annealing_num_steps=1,
         theta=settings["theta"], sigma=settings["sigma"], dt=settings["dt"],
-        safe=bool(settings.get("clip", ABSENT_KEYS["exploration.clip"])),  # task.exploration.* over exploration.*
+        safe=bool(settings.get("clip", spec["exploration.clip"])),  # task.exploration.* over exploration.*
     )
     return TensorDictSequential(actor, noise)
 
 
-def exploration_settings(cfg: DictConfig) -> dict:
+def exploration_settings(spec: RunSpec) -> dict:
     """The noise's settings: ``exploration.*``, with the task's own ``task.exploration.*`` entries over them
     (cliff-walker's release config uses sigma 0.01 and dt 0.01)."""
-    task = OmegaConf.select(cfg, "task.exploration", default=None)
-    own = {} if task is None else OmegaConf.to_container(task, resolve=True)
-    return {**OmegaConf.to_container(cfg.exploration, resolve=True), **own}
+    return {**OmegaConf.to_container(spec.cfg.exploration, resolve=True), **(spec["task.exploration"] or {})}
 
 
-def make_adam(cfg: DictConfig, groups: list[dict]) -> torch.optim.Optimizer:
+def make_adam(spec: RunSpec, groups: list[dict]) -> torch.optim.Optimizer:
     """Adam over parameter groups; with ``speed.fused_adam`` (and ``speed.accelerate``) the fused kernels
     (one pass over all parameters, the same update rule) where this torch supports them for these parameters."""
-    fused = bool(OmegaConf.select(cfg, "speed.fused_adam", default=False)) and speed_components(cfg).accelerated
+    fused = bool(spec["speed.fused_adam"]) and speed_components(spec).accelerated
     if fused:
         try:
             return torch.optim.Adam(groups, fused=True)
@@ -169,9 +166,9 @@ class Agent:
     head: str = "tanh"  # the actor's output head (ACTOR_HEADS)
 
 
-def make_forward_agent(cfg: DictConfig, obs_dim: int, action_spec) -> Agent:
+def make_forward_agent(spec: RunSpec, obs_dim: int, action_spec) -> Agent:
     """DDPG (torchrl's ``DDPGLoss``) with the paper's critic layout (action joined after the first hidden layer)."""
-    parts = speed_components(cfg)
+    cfg, parts = spec.cfg, speed_components(spec)
     act_dim = action_spec.shape[-1]
     actor = make_actor(obs_dim, action_spec, cfg.hidden_sizes, parts)
     critic = parts.ensemble(
@@ -179,40 +176,35 @@ def make_forward_agent(cfg: DictConfig, obs_dim: int, action_spec) -> Agent:
     )
     loss = parts.ddpg_loss(actor, critic, delay_actor=True, delay_value=True)
     loss.make_value_estimator(gamma=cfg.gamma)
-    optimizer = make_adam(cfg, [
+    optimizer = make_adam(spec, [
         {"params": list(loss.actor_network_params.values(True, True)), "lr": cfg.forward.actor_lr},
         {"params": list(loss.value_network_params.values(True, True)), "lr": cfg.forward.critic_lr},
     ])
     targets = parts.soft_update(loss, tau=cfg.tau)  # building it copies the networks into their targets
-    if releases_targets(cfg):  # the target actor starts as a network of its own; the target critic as a copy
+    if spec["target_init"] == "release":  # the target actor starts as a network of its own; the target critic as a copy
         draw_target(loss.target_actor_network_params, make_actor(obs_dim, action_spec, cfg.hidden_sizes, parts))
     return Agent(actor, loss, optimizer, targets, critic)
 
 
-def make_reset_agent(cfg: DictConfig, obs_dim: int, action_spec) -> Agent:
-    """The reset agent of ``cfg.algo.name`` (:mod:`reset_agents`): ours, RCE on a classifier ensemble with
+def make_reset_agent(spec: RunSpec, obs_dim: int, action_spec) -> Agent:
+    """The reset agent of the run's kind (:mod:`.reset_agents`): ours, RCE on a classifier ensemble with
     priors; LNT / LNT-sparse, DDPG on a Q ensemble."""
-    parts, kind = speed_components(cfg), reset_kind(cfg)
-    act_dim, head = action_spec.shape[-1], setting(cfg, "reset.actor.head")
+    cfg, parts, kind = spec.cfg, speed_components(spec), spec.kind
+    act_dim, head = action_spec.shape[-1], spec["reset.actor.head"]
     actor = make_actor(obs_dim, action_spec, cfg.hidden_sizes, parts, head)
-    model, loss, groups = kind.build(cfg, actor, obs_dim, act_dim, parts)
-    terms = make_actor_terms(cfg, actor, act_dim)
+    model, loss, groups = kind.build(spec, actor, obs_dim, act_dim, parts)
+    terms = make_actor_terms(spec, actor, act_dim)
     if terms is not None and terms.entropy is not None:
         loss.entropy_bonus = terms.entropy  # saved and loaded with the loss's state
         if terms.entropy.learned:  # the temperature steps with the actor, at the classifiers' rate
             groups = [*groups, {"params": [terms.entropy.log_alpha], "lr": cfg.reset.critic_lr}]
-    optimizer = make_adam(cfg, groups)
-    targets = parts.soft_update(loss, tau=reset_tau(cfg))  # building it copies the networks into their targets
+    optimizer = make_adam(spec, groups)
+    targets = parts.soft_update(loss, tau=reset_tau(spec))  # building it copies the networks into their targets
     # the targets that start as draws of their own (target_init: release for ours; algo.target_draws for LNT)
-    for network, name in kind.fresh_targets(cfg, loss, obs_dim, act_dim, parts,
+    for network, name in kind.fresh_targets(spec, loss, obs_dim, act_dim, parts,
                                             lambda: make_actor(obs_dim, action_spec, cfg.hidden_sizes, parts, head)):
         draw_target(getattr(loss, name), network)
     return Agent(actor, loss, optimizer, targets, model, kind.critic_loss, terms, head)
-
-
-def releases_targets(cfg: DictConfig) -> bool:
-    """``target_init: release``: the targets the release's network constructors leave (configs without the key: copies)."""
-    return setting(cfg, "target_init") == "release"
 
 
 def draw_target(target, fresh: nn.Module) -> None:
@@ -225,13 +217,12 @@ def draw_target(target, fresh: nn.Module) -> None:
             target.get(key).copy_(value)
 
 
-def reset_tau(cfg: DictConfig) -> float:
+def reset_tau(spec: RunSpec) -> float:
     """The reset agent's target rate: ``reset.tau`` where set, else the shared ``tau``."""
-    tau = OmegaConf.select(cfg, "reset.tau", default=None)
-    return float(cfg.tau if tau is None else tau)
+    tau = spec["reset.tau"]
+    return float(spec.cfg.tau if tau is None else tau)
 
 
-def make_trigger(cfg: DictConfig, reset_agent: Agent) -> ResetTriggerTransform:
-    """The reset trigger on ``reset_agent``'s model, at the threshold of the run's reset agent kind."""
-    kind = reset_kind(cfg)
-    return kind.trigger(reset_agent.model, kind.threshold(cfg))
+def make_trigger(spec: RunSpec, reset_agent: Agent) -> ResetTriggerTransform:
+    """The reset trigger on ``reset_agent``'s model, at the run's threshold (p_thresh; LNT: Q_thresh)."""
+    return spec.kind.trigger(reset_agent.model, spec.trigger_threshold)

@@ -1,72 +1,38 @@
-"""A run folder's files: crash-safe checkpoints, append-only CSV tables, the code version, summaries."""
+"""A run's checkpoints: crash-safe folders of its whole training state, each listed by a manifest written last, the
+newest intact one found on resume, damaged ones named."""
 from __future__ import annotations
 
-import csv
 import hashlib
 import json
 import logging
 import os
-import platform
 import random
 import re
 import shutil
-import signal
-import subprocess
 import time
-from contextlib import contextmanager
 from pathlib import Path
 from typing import Callable
 
 import numpy as np
 import torch
 
-__all__ = ["RunFolderBusy", "run_folder_lock", "run_identity", "identity_differences", "code_version",
-           "processor_name", "Checkpoints", "CheckpointDamaged", "checkpoint_step", "checkpoint_problems",
-           "no_intact_checkpoint", "TrainingState", "RunInterrupted", "stop_on_signals", "reset_outcomes_by_quarter",
-           "CsvTable", "dump_buffer"]
+__all__ = ['run_identity', 'identity_differences', 'Checkpoints', 'CheckpointDamaged', 'checkpoint_step', 'checkpoint_problems', 'no_intact_checkpoint', 'TrainingState', 'dump_buffer', 'MANIFEST']
 
 log = logging.getLogger("torchrl_reset.train")
 
+
 MANIFEST = "manifest.json"  # a checkpoint's list of its files, written last
+
+
+
 _STEP_FOLDER = re.compile(r"step_(\d+)")
 
-
-def code_version() -> dict:
-    """The commit the code runs at and whether the work tree differs from it (None outside a git checkout)."""
-    root = Path(__file__).resolve().parents[1]
-    try:
-        commit = subprocess.run(["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True, text=True,
-                                timeout=10, check=True).stdout.strip()
-        status = subprocess.run(["git", "-C", str(root), "status", "--porcelain", "--untracked-files=no"],
-                                capture_output=True, text=True, timeout=10, check=True).stdout.strip()
-    except (OSError, subprocess.SubprocessError):
-        return {"commit": None, "modified": None}
-    return {"commit": commit, "modified": bool(status)}
-
-
-def processor_name(cpuinfo: Path = Path("/proc/cpuinfo")) -> str:
-    """The processor's model name and its widest vector extension (``/proc/cpuinfo`` on Linux), such as
-    ``"AMD EPYC, AVX2"``: a run is reproducible bit for bit on one kind of processor only, since the
-    float rounding of the products differs between kinds."""
-    name, flags = platform.processor() or platform.machine(), set()
-    try:
-        for line in Path(cpuinfo).read_text().splitlines():
-            if line.startswith("model name"):
-                name = line.split(":", 1)[1].strip()
-            elif line.startswith("flags"):
-                flags = set(line.split(":", 1)[1].split())
-            if flags and name:
-                break
-    except OSError:
-        pass
-    widest = next((label for flag, label in (("avx512_bf16", "AVX-512 BF16"), ("avx512f", "AVX-512"), ("avx2", "AVX2"))
-                   if flag in flags), None)
-    return f"{name}, {widest}" if widest else name
 
 
 def run_identity(cfg) -> dict:
     """What names a run in its checkpoints' ``meta.json``: task, algorithm and seed."""
     return {"task": cfg.task.name, "algo": cfg.algo.name, "seed": int(cfg.seed)}
+
 
 
 def identity_differences(meta: dict, cfg) -> dict[str, tuple]:
@@ -80,8 +46,10 @@ def identity_differences(meta: dict, cfg) -> dict[str, tuple]:
     return differ
 
 
+
 class CheckpointDamaged(RuntimeError):
     """No intact checkpoint to resume from; the message names each damaged one and what is wrong with it."""
+
 
 
 def dump_buffer(rb, path: Path) -> None:
@@ -97,6 +65,7 @@ def dump_buffer(rb, path: Path) -> None:
         if hookless:
             warnings.filterwarnings("ignore", message="last_cursor is None", category=UserWarning)
         rb.dumps(path)
+
 
 
 class Checkpoints:
@@ -299,10 +268,12 @@ class Checkpoints:
             shutil.rmtree(path, ignore_errors=True)
 
 
+
 def checkpoint_step(path) -> int | None:
     """The step of a checkpoint folder's name (``step_0000000300``: 300), or None for another name."""
     match = _STEP_FOLDER.fullmatch(Path(path).name)
     return int(match[1]) if match else None
+
 
 
 def _sha256(path: Path) -> str:
@@ -313,6 +284,7 @@ def _sha256(path: Path) -> str:
     return digest.hexdigest()
 
 
+
 # sha256 of the checkpoint files this process has read, by path and by what stat said of the file when it was
 # read (device, inode, size, modification time in ns). A resume verifies the same folder more than once at
 # start-up (the configuration check, again under the run folder's lock, then the load); a file written since has
@@ -320,6 +292,7 @@ def _sha256(path: Path) -> str:
 # within _SETTLED_NS of being read could be written again under the same stamp: such a file is not remembered.
 _hashed: dict[str, tuple[tuple[int, int, int, int], str]] = {}
 _SETTLED_NS = 2_000_000_000
+
 
 
 def _checkpoint_sha256(path: Path, stat: os.stat_result) -> str:
@@ -334,11 +307,13 @@ def _checkpoint_sha256(path: Path, stat: os.stat_result) -> str:
     return digest
 
 
+
 def _write_manifest(folder: Path) -> None:
     files = {}
     for path in sorted(p for p in folder.rglob("*") if p.is_file()):
         files[path.relative_to(folder).as_posix()] = {"size": path.stat().st_size, "sha256": _sha256(path)}
     (folder / MANIFEST).write_text(json.dumps({"files": files}, indent=1))
+
 
 
 def checkpoint_problems(folder: Path) -> list[str]:
@@ -372,6 +347,7 @@ def checkpoint_problems(folder: Path) -> list[str]:
         elif _checkpoint_sha256(path, stat) != sha256:
             problems.append(f"{name} differs from the manifest's sha256 (changed after it was written)")
     return problems
+
 
 
 class TrainingState:
@@ -443,6 +419,7 @@ class TrainingState:
         return folder
 
 
+
 def _simulator(env):
     """The innermost env (or wrapper) of ``env`` with ``get_simulator_state`` / ``set_simulator_state``, or None."""
     while env is not None:
@@ -452,9 +429,11 @@ def _simulator(env):
     return None
 
 
+
 def _simulator_state(env):
     simulator = _simulator(env)
     return None if simulator is None else simulator.get_simulator_state()
+
 
 
 def no_intact_checkpoint(root: Path, damaged: list[tuple[Path, list[str]]]) -> str:
@@ -464,66 +443,12 @@ def no_intact_checkpoint(root: Path, damaged: list[tuple[Path, list[str]]]) -> s
             "checkpoints away and start the run again without resume.")
 
 
+
 def _own(state: dict) -> dict:
     """The state dict's tensors in storage of their own: torch.save writes a view's whole storage (a tensor
     that views part of a larger one would carry all of it)."""
     return {k: v.clone() if isinstance(v, torch.Tensor) else v for k, v in state.items()}
 
-
-class RunInterrupted(Exception):
-    """A signal stopped the run before ``total_steps``. ``summaries``: the run's summary (a list of one), the
-    run checkpointed at the step it stopped; empty when a second Ctrl-C cut the step under way short (the last
-    checkpoint stands). ``exit_code``: the shell's convention, 128 + the signal's number (130 for SIGINT, 143
-    for SIGTERM)."""
-
-    def __init__(self, signum: int, summaries: list[dict], message: str) -> None:
-        super().__init__(message)
-        self.signum, self.summaries = int(signum), summaries
-        self.exit_code = 128 + self.signum
-
-
-STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
-
-
-@contextmanager
-def stop_on_signals():
-    """Yields a list that gets the signal's number when SIGINT (Ctrl-C) or SIGTERM (a cluster's pre-emption,
-    ``kill``) arrives, so that the loop can stop after its current step with a checkpoint, which then resumes
-    exactly. A second Ctrl-C stops at once (KeyboardInterrupt): the step under way is lost, the last
-    checkpoint stands. Off the main thread, signals are left alone."""
-    requested: list[int] = []
-
-    def on_signal(signum, frame):
-        name = signal.Signals(signum).name
-        if signum == signal.SIGINT and signal.SIGINT in requested:
-            _say(f"{name} again: stopping at once; the step under way is not checkpointed (resume continues from "
-                 "the last checkpoint)")
-            raise KeyboardInterrupt
-        if not requested:
-            again = " (Ctrl-C again stops at once, without it)" if signum == signal.SIGINT else ""
-            _say(f"{name}: stopping after the current step with a checkpoint{again}")
-        requested.append(signum)
-
-    previous = {}
-    try:
-        for signum in STOP_SIGNALS:
-            previous[signum] = signal.signal(signum, on_signal)
-    except ValueError:  # not the main thread
-        pass
-    try:
-        yield requested
-    finally:
-        for signum, handler in previous.items():
-            signal.signal(signum, handler)
-
-
-def _say(message: str) -> None:
-    """A line on stderr from a signal handler: written to the file descriptor directly, since the handler may
-    run while the code it interrupted is writing to ``sys.stderr``'s buffer (a progress bar, a log line)."""
-    try:
-        os.write(2, f"\n{message}\n".encode())
-    except OSError:
-        pass
 
 
 def _fsync_dir(path: Path) -> None:
@@ -534,91 +459,11 @@ def _fsync_dir(path: Path) -> None:
         os.close(fd)
 
 
+
 def _fsync_tree(root: Path) -> None:
     for dirpath, _, filenames in os.walk(root):
         for name in filenames:
             with open(os.path.join(dirpath, name), "rb") as f:
                 os.fsync(f.fileno())
         _fsync_dir(Path(dirpath))
-
-
-def reset_outcomes_by_quarter(resets: Path, steps: int, reset_episodes: int) -> dict:
-    """The reset episodes that ended in the first and in the last quarter of a run's ``steps`` (steps 0 to
-    steps // 4, and the last steps // 4), and how many of them got back to the start state, counted from
-    ``resets.csv`` (one row per reset episode, at the step it ended). A quarter's counts are None when the
-    table does not hold the run's ``reset_episodes`` (a run begun before it was written)."""
-    rows = []
-    if Path(resets).exists():
-        with open(resets, newline="") as f:
-            rows = [(int(float(r["frames"])), r["outcome"]) for r in csv.DictReader(f)]
-    complete = len(rows) == int(reset_episodes)
-    quarter = int(steps) // 4
-    out = {}
-    for name, (start, end) in (("first", (0, quarter)), ("last", (int(steps) - quarter, int(steps)))):
-        ended = [outcome for frame, outcome in rows if start < frame <= end]
-        out[name] = {"from_step": start, "to_step": end, "reset_episodes": len(ended) if complete else None,
-                     "successful_resets": ended.count("success") if complete else None}
-    return out
-
-
-class CsvTable:
-    """An append-only CSV file with a fixed header; on resume, rows after the checkpoint are dropped."""
-
-    def __init__(self, path: Path, fields: list[str]):
-        self.path = Path(path)
-        self.fields = fields
-
-    def truncate_after(self, frames: int) -> int | None:
-        """Drops the rows logged after step ``frames``; returns the step of the last one dropped (None if none)."""
-        if not self.path.exists():
-            return None
-        with open(self.path, newline="") as f:
-            rows = list(csv.DictReader(f))
-        kept = [row for row in rows if int(float(row["frames"])) <= frames]
-        dropped = [int(float(row["frames"])) for row in rows if int(float(row["frames"])) > frames]
-        self._rewrite(kept)
-        return max(dropped, default=None)
-
-    def _rewrite(self, rows) -> None:
-        tmp = self.path.with_suffix(".tmp")
-        with open(tmp, "w", newline="") as f:
-            writer = csv.DictWriter(f, fieldnames=self.fields)
-            writer.writeheader()
-            writer.writerows(rows)
-        os.replace(tmp, self.path)
-
-    def append(self, row: dict) -> None:
-        new = not self.path.exists()
-        with open(self.path, "a", newline="") as f:
-            writer = csv.DictWriter(f, fieldnames=self.fields, extrasaction="ignore")
-            if new:
-                writer.writeheader()
-            writer.writerow(row)
-
-
-class RunFolderBusy(RuntimeError):
-    """Another process is training in this run folder."""
-
-
-@contextmanager
-def run_folder_lock(run_dir: Path):
-    """Holds ``run_dir/.lock`` for the whole run, so that two runs never write into one folder (two jobs
-    of a grid whose run_dir does not tell them apart, say). Where file locks are unavailable, does nothing."""
-    try:
-        import fcntl
-    except ImportError:  # not a POSIX system
-        yield
-        return
-    handle = open(Path(run_dir) / ".lock", "w")
-    try:
-        try:
-            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError:
-            raise RunFolderBusy(
-                f"another process is training in {run_dir}. Give every run its own run_dir; in a grid over "
-                "other keys, put them in it (run_dir='runs/${task.name}/${algo.name}/p${task.p_thresh}/seed${seed}')."
-            ) from None
-        yield
-    finally:
-        handle.close()
 

@@ -1,7 +1,7 @@
 """Did the trigger come in time? Whether the states before a run's triggered resets could still be saved.
 
-    python recipes/recoverable.py runs/tier2/cliff_cheetah/ours/seed0 --window 25000
-    python recipes/recoverable.py results/100000-tier2/cliff_cheetah/*/seed0 --csv-dir /tmp/verdicts
+    python recipes/analysis/recoverable.py runs/tier2/cliff_cheetah/ours/seed0 --window 25000
+    python recipes/analysis/recoverable.py results/100000-tier2/cliff_cheetah/*/seed0 --csv-dir /tmp/verdicts
 
 On the cliff tasks a trigger protects the system only if the state it stops in can still be brought
 back. ``triggers.csv`` keeps the whole observation before each trigger (the cliff tasks observe
@@ -35,14 +35,12 @@ from __future__ import annotations
 import argparse
 import csv
 import statistics
-import sys
 from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from stretches import _k, csv_rows, markdown, resets_by_start, run_task, within  # noqa: E402
+from torchrl_reset_recipes.analysis.stretches import _k, csv_rows, markdown, resets_by_start, run_task, within
 
 __all__ = ["candidate_actions", "rollout", "stopping_distance", "escapes", "first_escape", "verdicts", "stretch_table", "main"]
 

@@ -1,7 +1,7 @@
 """An animated GIF of one evaluation of a trained run: a forward episode, then a reset episode.
 
-    MUJOCO_GL=egl python recipes/video.py runs/ball_in_cup_catch-ours-0          # -> <run>/eval.gif
-    MUJOCO_GL=egl python recipes/video.py RUN_DIR --out clip.gif --size 320 --fps 25
+    MUJOCO_GL=egl python recipes/analysis/video.py runs/ball_in_cup_catch-ours-0          # -> <run>/eval.gif
+    MUJOCO_GL=egl python recipes/analysis/video.py RUN_DIR --out clip.gif --size 320 --fps 25
 
 Loads the run's saved configuration and its latest checkpoint, and plays the evaluation of the
 training recipe (exploration off, the reset trigger on during the forward episode): the forward
@@ -14,16 +14,13 @@ UR3 tasks have no rendering.
 from __future__ import annotations
 
 import argparse
-import sys
 from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from config_checks import reset_horizon  # noqa: E402
-from saved_runs import load_agents  # noqa: E402
-from task_envs import EVAL_SEED_OFFSET, evaluate, make_task_env  # noqa: E402
+from torchrl_reset_recipes.analysis.saved_runs import load_agents
+from torchrl_reset_recipes.training.task_envs import EVAL_SEED_OFFSET, evaluate, make_task_env
 
 COLOURS = {"forward": (40, 170, 60), "reset": (40, 90, 220), "trigger": (220, 40, 40)}
 
@@ -41,12 +38,12 @@ def record(run_dir: Path, *, size: int = 240) -> tuple[list[np.ndarray], dict]:
     saved = load_agents(run_dir)
     cfg, forward, reset = saved.cfg, saved.forward, saved.reset
     # make_env refuses render_mode for the UR3 tasks (no camera on the twin)
-    env, trigger = make_task_env(cfg, reset, for_eval=True, render_mode="rgb_array", width=size, height=size)
+    env, trigger = make_task_env(saved.spec, reset, for_eval=True, render_mode="rgb_array", width=size, height=size)
     env.set_seed(int(cfg.seed) + EVAL_SEED_OFFSET)  # as the recipe's evaluation env
 
     frames = []
-    info = evaluate(env, trigger, forward.actor, reset.actor, horizon=int(cfg.task.forward_horizon),
-                    reset_horizon=reset_horizon(cfg), min_reset_steps=int(cfg.reset.min_steps), gamma=float(cfg.gamma),
+    info = evaluate(env, trigger, forward.actor, reset.actor, horizon=saved.spec.forward_horizon,
+                    reset_horizon=saved.spec.reset_horizon, min_reset_steps=int(cfg.reset.min_steps), gamma=float(cfg.gamma),
                     observe=lambda phase: frames.append(framed(env.render(), phase)))
     info["checkpoint"] = saved.checkpoint.name
     env.close()

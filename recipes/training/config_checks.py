@@ -4,24 +4,24 @@ from __future__ import annotations
 import difflib
 import functools
 import json
-import os
 from pathlib import Path
 
 from omegaconf import DictConfig, OmegaConf
 
 from torchrl_reset.accel import MATMUL_PRECISIONS
-from absent_keys import setting
-from agents import ACTOR_HEADS
-from reset_agents import KINDS, reset_kind
-from run_files import Checkpoints, identity_differences, no_intact_checkpoint
+from torchrl_reset_recipes import CONF
+from torchrl_reset_recipes.training.absent_keys import setting
+from torchrl_reset_recipes.training.agents import ACTOR_HEADS
+from torchrl_reset_recipes.training.reset_agents import KINDS
+from torchrl_reset_recipes.training.run_spec import reset_horizon, should_resume
+from torchrl_reset_recipes.training.checkpoints import Checkpoints, identity_differences, no_intact_checkpoint
 from torchrl_reset_envs import TASKS
 
-__all__ = ["ALGOS", "ConfigError", "reset_horizon", "validate", "should_resume", "torch_threads",
-           "recipe_settings", "unknown_settings", "RETIRED_KEYS", "retired_key_problem"]
+__all__ = ["ALGOS", "ConfigError", "validate", "recipe_settings", "unknown_settings", "RETIRED_KEYS",
+           "retired_key_problem"]
 
 
 ALGOS = tuple(KINDS)  # the kinds of reset agent (reset_agents.py)
-CONF = Path(__file__).resolve().parent / "conf"
 
 #: the keys of run batching (several runs in one process, or one agent pair over copies of a task), retired;
 #: older runs' ``config.yaml`` files still hold them (null, false), which the report reads as no setting
@@ -53,8 +53,6 @@ def actor_problems(cfg: DictConfig) -> list[str]:
     return problems
 
 
-def reset_horizon(cfg: DictConfig) -> int:
-    return 2 * int(cfg.task.forward_horizon) if cfg.reset.max_steps is None else int(cfg.reset.max_steps)
 
 
 def validate(cfg: DictConfig) -> None:
@@ -70,7 +68,7 @@ def validate(cfg: DictConfig) -> None:
     if cfg.algo.name not in ALGOS:
         problems.append(f"unknown algorithm {cfg.algo.name!r}; known: {', '.join(ALGOS)}")
     else:
-        problems += reset_kind(cfg).check(cfg)  # the keys only that kind of reset agent reads
+        problems += KINDS[cfg.algo.name].check(cfg)  # the keys only that kind of reset agent reads
     if not 0.0 < float(cfg.task.p_thresh) < 1.0:
         problems.append(f"task.p_thresh must lie in (0, 1), got {cfg.task.p_thresh}")
     h_f = int(cfg.task.forward_horizon)
@@ -147,15 +145,6 @@ def validate(cfg: DictConfig) -> None:
         raise ConfigError(f"threads must be a positive integer or auto, got {threads!r}")
 
 
-def should_resume(cfg: DictConfig) -> bool:
-    """``resume``: true, false, or auto (continue from the run folder's checkpoint when it has one:
-    launching the same grid again continues every run where it stopped). A checkpoint is what
-    :meth:`Checkpoints.folders` lists, intact or not: resuming takes the newest intact one
-    (:meth:`Checkpoints.latest`), and a folder whose checkpoints are all damaged stops with an error instead
-    of starting over."""
-    if cfg.resume == "auto":
-        return bool(Checkpoints(Path(cfg.run_dir) / "checkpoints").folders())
-    return bool(cfg.resume)
 
 
 @functools.lru_cache(maxsize=None)
@@ -235,19 +224,3 @@ def unknown_settings(cfg: DictConfig, conf: Path = CONF) -> list[str]:
         lines.append(f"unknown key {path}: the recipe's configuration (recipes/conf) does not define it, so "
                      f"nothing would read it{hint}")
     return lines
-
-
-def torch_threads(cfg: DictConfig) -> int:
-    """``threads``: a number, or auto: one per run in a Hydra multirun (runs go in parallel, one per
-    core), else up to two."""
-    if cfg.threads != "auto":
-        return int(cfg.threads)
-    try:
-        from hydra.core.hydra_config import HydraConfig
-        from hydra.types import RunMode
-
-        if HydraConfig.initialized() and HydraConfig.get().mode == RunMode.MULTIRUN:
-            return 1
-    except (ImportError, ValueError):
-        pass
-    return max(1, min(2, os.cpu_count() or 1))

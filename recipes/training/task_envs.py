@@ -9,7 +9,8 @@ from omegaconf import DictConfig, OmegaConf
 from torchrl.envs import TransformedEnv
 from torchrl.envs.utils import ExplorationType, set_exploration_type, step_mdp
 
-from agents import Agent, make_trigger
+from torchrl_reset_recipes.training.agents import Agent, make_trigger
+from torchrl_reset_recipes.training.run_spec import RunSpec
 from torchrl_reset import ResetTriggerTransform
 from torchrl_reset_envs import make_env
 
@@ -39,11 +40,11 @@ def task_dimensions(cfg: DictConfig):
     return out
 
 
-def make_task_env(cfg: DictConfig, reset_agent: Agent, *, for_eval: bool = False,
+def make_task_env(spec: RunSpec, reset_agent: Agent, *, for_eval: bool = False,
                   **options) -> tuple[TransformedEnv, ResetTriggerTransform]:
     """The task's env with the reset trigger of ``reset_agent``; ``options`` go to ``make_env``
     (``render_mode``, ``width``...)."""
-    trigger = make_trigger(cfg, reset_agent)
+    cfg, trigger = spec.cfg, make_trigger(spec, reset_agent)
     env = make_env(cfg.task.name, device=cfg.device, **env_kwargs(cfg, for_eval=for_eval), **options)
     env.append_transform(trigger)
     return env, trigger
@@ -95,7 +96,7 @@ def evaluate(env: TransformedEnv, trigger: ResetTriggerTransform, forward_actor,
     """One forward and one reset episode with exploration off, from ``env.reset()`` (docs/method.md section 7).
 
     ``observe(phase)``, when given, is called after the reset and after every step, with ``phase``
-    ``"forward"``, ``"trigger"`` (the step the trigger stopped) or ``"reset"`` (recipes/video.py
+    ``"forward"``, ``"trigger"`` (the step the trigger stopped) or ``"reset"`` (recipes/analysis/video.py
     renders there).
     """
     seen = observe or (lambda phase: None)

@@ -4,7 +4,7 @@ The forward agent is rewarded for walking right; the cells from ``--ditch`` on a
 a manual reset leaves. The reset agent learns, from examples of the start cell alone, to walk back,
 and its classifier ensemble learns to trigger a reset before the forward agent steps into the ditch.
 
-    python recipes/demo_chain.py --steps 8000 --seed 0
+    python recipes/examples/demo_chain.py --steps 8000 --seed 0
 
 Prints a progress bar, then the paper's metrics (manual resets, forward share, reset success rate)
 and an evaluation of both policies, and writes them to ``<out>/summary.json``.

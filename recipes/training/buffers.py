@@ -1,26 +1,24 @@
 """The recipe's replay buffers: what each keeps, and the reset buffer's n-step transform and sampler."""
 from __future__ import annotations
 
-from omegaconf import DictConfig
 from torchrl.data import LazyTensorStorage, ReplayBuffer
 
-from absent_keys import setting
-from agents import Agent
-from reset_agents import reset_kind
+from torchrl_reset_recipes.training.agents import Agent
+from torchrl_reset_recipes.training.run_spec import RunSpec
 from torchrl_reset import EpisodeWindowSampler
 
 __all__ = ["make_buffers", "buffer_keys", "fallback_count", "restore_fallback_count"]
 
 
-def make_buffers(cfg: DictConfig) -> tuple[ReplayBuffer, ReplayBuffer]:
+def make_buffers(spec: RunSpec) -> tuple[ReplayBuffer, ReplayBuffer]:
     """The forward agent's buffer (with ``forward.sampling: episode``, the release's episode-first sampler
     with windows of one step) and the reset agent's (:meth:`~reset_agents.ResetAgentKind.replay`; ours': the
     n-step transform and the release's episode-first sampler)."""
-    episodes_first = setting(cfg, "forward.sampling") == "episode"
+    cfg, episodes_first = spec.cfg, spec["forward.sampling"] == "episode"
     forward_rb = ReplayBuffer(storage=LazyTensorStorage(int(cfg.forward.buffer_size)),
                               batch_size=cfg.forward.batch_size,
                               sampler=EpisodeWindowSampler(1) if episodes_first else None)
-    return forward_rb, reset_kind(cfg).replay(cfg, int(cfg.reset.buffer_size), cfg.reset.batch_size)
+    return forward_rb, spec.kind.replay(spec, int(cfg.reset.buffer_size), cfg.reset.batch_size)
 
 
 def fallback_count(rb) -> int | None:
@@ -35,7 +33,7 @@ def restore_fallback_count(rb, count: int | None) -> None:
         rb.sampler.fallbacks = count
 
 
-def buffer_keys(cfg: DictConfig, forward: Agent, reset: Agent) -> tuple[list, list]:
+def buffer_keys(spec: RunSpec, forward: Agent, reset: Agent) -> tuple[list, list]:
     """The entries each replay buffer keeps: what its loss reads (``loss.in_keys``), its end flags and what
     its sampler or transform reads (:meth:`~reset_agents.ResetAgentKind.buffer_keys`).
 
@@ -44,7 +42,7 @@ def buffer_keys(cfg: DictConfig, forward: Agent, reset: Agent) -> tuple[list, li
     fewer columns is faster and smaller.
     """
     forward_keys = [(key,) if isinstance(key, str) else tuple(key) for key in forward.loss.in_keys]
-    if setting(cfg, "forward.sampling") == "episode":
+    if spec["forward.sampling"] == "episode":
         forward_keys.append(("collector", "traj_ids"))  # the episode-first sampler's episodes
-    reset_keys = reset_kind(cfg).buffer_keys(cfg, reset)
+    reset_keys = spec.kind.buffer_keys(spec, reset)
     return list(dict.fromkeys(forward_keys)), list(dict.fromkeys(reset_keys))

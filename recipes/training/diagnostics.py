@@ -13,7 +13,7 @@ import math
 import torch
 from tensordict import TensorDict
 
-from reset_agents import ResetAgentKind
+from torchrl_reset_recipes.training.reset_agents import ResetAgentKind
 from torchrl_reset import reduce_members
 
 DIAGNOSTIC_FIELDS = [

@@ -8,15 +8,15 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 
-from agents import make_forward_agent, make_reset_agent
-from buffers import make_buffers
-from config_checks import reset_horizon, should_resume, torch_threads
-from learner import Learner, make_collector
-from records import RunRecord
-from run_files import Checkpoints, TrainingState
-from task_envs import EVAL_SEED_OFFSET, evaluate, make_task_env, realtime_env, task_dimensions
+from torchrl_reset_recipes.training.agents import make_forward_agent, make_reset_agent
+from torchrl_reset_recipes.training.buffers import make_buffers
+from torchrl_reset_recipes.training.learner import Learner, make_collector
+from torchrl_reset_recipes.training.records import RunRecord
+from torchrl_reset_recipes.training.run_spec import RunSpec
+from torchrl_reset_recipes.training.checkpoints import Checkpoints, TrainingState
+from torchrl_reset_recipes.training.task_envs import EVAL_SEED_OFFSET, evaluate, make_task_env, realtime_env, task_dimensions
 
 from torchrl_reset import DualCollector
 from torchrl_reset.accel import choose_matmul_precision, retain_freed_memory
@@ -41,17 +41,16 @@ def seed_process(seed: int) -> None:
     random.seed(seed)
 
 
-def set_up_process(cfg: DictConfig) -> str:
+def set_up_process(spec: RunSpec) -> str:
     """Torch threads, the ``speed.*`` settings and the seeds; returns the CPU product precision chosen."""
-    torch.set_num_threads(torch_threads(cfg))
-    accelerate = bool(OmegaConf.select(cfg, "speed.accelerate", default=True))
-    if accelerate and cfg.speed.retain_memory:
+    torch.set_num_threads(spec.threads)
+    accelerate = bool(spec["speed.accelerate"])
+    if accelerate and spec["speed.retain_memory"]:
         retain_freed_memory()
     # a setting of CPU products: with the networks on another device it changes nothing
-    on_cpu = torch.device(cfg.device).type == "cpu"
-    setting = OmegaConf.select(cfg, "speed.matmul_precision", default="ieee") if on_cpu and accelerate else "ieee"
-    precision = choose_matmul_precision(setting)
-    seed_process(int(cfg.seed))
+    on_cpu = torch.device(spec.cfg.device).type == "cpu"
+    precision = choose_matmul_precision(spec["speed.matmul_precision"] if on_cpu and accelerate else "ieee")
+    seed_process(int(spec.cfg.seed))
     logging.getLogger("torchrl").setLevel(logging.WARNING)
     return precision
 
@@ -60,7 +59,7 @@ def set_up_process(cfg: DictConfig) -> str:
 class TrainingRun:
     """One run's pieces: its agents, envs, collector, buffers, training state, records and learner."""
 
-    cfg: DictConfig
+    spec: RunSpec
     forward: object
     reset: object
     env: object
@@ -76,12 +75,16 @@ class TrainingRun:
     robot: object
     matmul_precision: str
 
+    @property
+    def cfg(self) -> DictConfig:
+        return self.spec.cfg
+
     def evaluation(self) -> dict:
         """One forward and one reset episode without noise."""
-        cfg = self.cfg
+        spec = self.spec
         return evaluate(self.eval_env, self.eval_trigger, self.forward.actor, self.reset.actor,
-                        horizon=int(cfg.task.forward_horizon), reset_horizon=reset_horizon(cfg),
-                        min_reset_steps=int(cfg.reset.min_steps), gamma=float(cfg.gamma))
+                        horizon=spec.forward_horizon, reset_horizon=spec.reset_horizon,
+                        min_reset_steps=int(spec.cfg.reset.min_steps), gamma=float(spec.cfg.gamma))
 
     def after_step(self, batch, phase: str) -> None:
         """The step's record, then the evaluation, log row and checkpoint that fall on this step."""
@@ -114,30 +117,31 @@ class TrainingRun:
         return summary
 
 
-def build_run(cfg: DictConfig, matmul_precision: str) -> TrainingRun:
+def build_run(spec: RunSpec, matmul_precision: str) -> TrainingRun:
     """Algorithm 1, lines 1-4, for one run (resumed from its checkpoint when ``resume`` says so)."""
+    cfg = spec.cfg
     run_dir = Path(cfg.run_dir)
     obs_dim, action_spec = task_dimensions(cfg)
-    forward = make_forward_agent(cfg, obs_dim, action_spec)  # pi_f and Q
-    reset = make_reset_agent(cfg, obs_dim, action_spec)  # pi_r and the classifiers C_i (LNT: the Q_i)
+    forward = make_forward_agent(spec, obs_dim, action_spec)  # pi_f and Q
+    reset = make_reset_agent(spec, obs_dim, action_spec)  # pi_r and the classifiers C_i (LNT: the Q_i)
     for agent in (forward, reset):
         agent.loss.to(cfg.device)
         # the loss moves the networks' parameters in place but only its own copies of their buffers
         # (the tanh module's action bounds, the ensemble's priors): the modules that act keep theirs
         agent.actor.to(cfg.device)
         agent.model.to(cfg.device)
-    env, trigger = make_task_env(cfg, reset)  # the trigger watches every forward action
-    eval_env, eval_trigger = make_task_env(cfg, reset, for_eval=True)
-    collector = make_collector(cfg, env, forward, reset)  # S* lives in the collector
+    env, trigger = make_task_env(spec, reset)  # the trigger watches every forward action
+    eval_env, eval_trigger = make_task_env(spec, reset, for_eval=True)
+    collector = make_collector(spec, env, forward, reset)  # S* lives in the collector
     eval_env.set_seed(int(cfg.seed) + EVAL_SEED_OFFSET)
-    forward_rb, reset_rb = make_buffers(cfg)
+    forward_rb, reset_rb = make_buffers(spec)
 
     checkpoints = Checkpoints(run_dir / "checkpoints", keep=int(cfg.keep_checkpoints),
-                              keep_states_every=OmegaConf.select(cfg, "keep_states_every", default=None))
+                              keep_states_every=spec["keep_states_every"])
     state = TrainingState(checkpoints, cfg,
                           forward, reset, collector, forward_rb, reset_rb, eval_env)
-    record = RunRecord(cfg, run_dir, collector, trigger)
-    if should_resume(cfg):
+    record = RunRecord(spec, run_dir, collector, trigger)
+    if spec.resume:
         folder = state.load()
         record.begin(state.history)
         log.info("resumed from %s at step %d", folder, collector.frames)
@@ -146,7 +150,7 @@ def build_run(cfg: DictConfig, matmul_precision: str) -> TrainingRun:
         record.begin(None)
     state.history = record.history
     robot = realtime_env(env)
-    learner = Learner(cfg, forward, reset, forward_rb, reset_rb, collector, matmul_precision, robot,
+    learner = Learner(spec, forward, reset, forward_rb, reset_rb, collector, matmul_precision, robot,
                       last_losses=record.history["last_losses"])
-    return TrainingRun(cfg, forward, reset, env, trigger, eval_env, eval_trigger, collector, forward_rb, reset_rb, state,
+    return TrainingRun(spec, forward, reset, env, trigger, eval_env, eval_trigger, collector, forward_rb, reset_rb, state,
                record, learner, robot, matmul_precision)

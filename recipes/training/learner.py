@@ -10,32 +10,30 @@ import contextlib
 import time
 
 import torch
-from omegaconf import DictConfig
 
-from absent_keys import setting
-from agents import Agent, with_exploration
-from buffers import buffer_keys
-from config_checks import reset_horizon
-from reset_agents import reset_kind
-from task_envs import UpdateBudget
+from torchrl_reset_recipes.training.agents import Agent, with_exploration
+from torchrl_reset_recipes.training.buffers import buffer_keys
+from torchrl_reset_recipes.training.run_spec import RunSpec
+from torchrl_reset_recipes.training.task_envs import UpdateBudget
 from torchrl_reset import DualCollector
 from torchrl_reset.accel import matmul_products
 
 __all__ = ["make_collector", "Learner", "NonFiniteLoss"]
 
 
-def make_collector(cfg: DictConfig, env, forward: Agent, reset: Agent) -> DualCollector:
+def make_collector(spec: RunSpec, env, forward: Agent, reset: Agent) -> DualCollector:
     """Forward and reset episodes over ``env``, with the paper's OU exploration on both policies."""
+    cfg = spec.cfg
     collector = DualCollector(
         env,
-        with_exploration(forward.actor, env.action_spec, cfg),
-        with_exploration(reset.actor, env.action_spec, cfg, reset.head),
-        max_forward_steps=int(cfg.task.forward_horizon),   # H_f
-        max_reset_steps=reset_horizon(cfg),                 # H_r
+        with_exploration(forward.actor, env.action_spec, spec),
+        with_exploration(reset.actor, env.action_spec, spec, reset.head),
+        max_forward_steps=spec.forward_horizon,   # H_f
+        max_reset_steps=spec.reset_horizon,       # H_r
         min_reset_steps=int(cfg.reset.min_steps),
         total_frames=int(cfg.total_steps),
         event_keys=event_keys(env),
-        **restart_option(cfg),
+        **restart_option(spec),
     )
     collector.set_seed(int(cfg.seed))
     return collector
@@ -47,10 +45,9 @@ def event_keys(env) -> list[str]:
     return [key for key in ("irrecoverable",) if key in env.full_observation_spec.keys(True, True)]
 
 
-def restart_option(cfg: DictConfig) -> dict:
+def restart_option(spec: RunSpec) -> dict:
     """The collector's ``restart_exploration`` from ``exploration.restart`` (configs without it: ``episode``)."""
-    restart = setting(cfg, "exploration.restart")
-    return {} if restart == "episode" else {"restart_exploration": False}
+    return {} if spec["exploration.restart"] == "episode" else {"restart_exploration": False}
 
 
 class NonFiniteLoss(RuntimeError):
@@ -68,18 +65,19 @@ class Learner:
     for the agents named in ``speed.compile``, through ``torch.compile`` (``losses``).
     """
 
-    def __init__(self, cfg: DictConfig, forward: Agent, reset: Agent, forward_rb, reset_rb, collector: DualCollector,
+    def __init__(self, spec: RunSpec, forward: Agent, reset: Agent, forward_rb, reset_rb, collector: DualCollector,
                  matmul_precision: str, robot=None, *, last_losses: dict | None = None) -> None:
-        self.cfg, self.forward, self.reset = cfg, forward, reset
+        cfg = spec.cfg
+        self.spec, self.cfg, self.forward, self.reset = spec, cfg, forward, reset
         self.forward_rb, self.reset_rb, self.collector = forward_rb, reset_rb, collector
         self.agents = {"forward": forward, "reset": reset}
-        self.keys = dict(zip(("forward", "reset"), buffer_keys(cfg, forward, reset)))
-        self.kind = reset_kind(cfg)
+        self.keys = dict(zip(("forward", "reset"), buffer_keys(spec, forward, reset)))
+        self.kind = spec.kind
         self.matmul_precision, self.robot = matmul_precision, robot
         self.heat_up = int(cfg.heat_up)
         #: ``update_order: release``: a critic step, then an actor step (else one joint step on both losses)
-        self.release_order = setting(cfg, "update_order") == "release"
-        compiled = set(cfg.speed.compile)
+        self.release_order = spec["update_order"] == "release"
+        compiled = set(spec["speed.compile"])
         self.losses = {name: torch.compile(agent.loss) if name in compiled else agent.loss
                        for name, agent in self.agents.items()}
         self.budget = UpdateBudget()
@@ -104,7 +102,7 @@ class Learner:
         if phase == "forward":
             return self.forward_rb.sample().to(self.cfg.device)
         sample, info = self.reset_rb.sample(return_info=True)
-        return self.kind.prepare(sample.to(self.cfg.device), info, self.collector.example_buffer, self.cfg)
+        return self.kind.prepare(sample.to(self.cfg.device), info, self.collector.example_buffer, self.spec)
 
     @contextlib.contextmanager
     def timed(self, phase: str):

@@ -10,19 +10,18 @@ import logging
 import os
 import shutil
 import signal
-import sys
 from pathlib import Path
 
 import pytest
 from hydra import compose, initialize_config_dir
 
 RECIPES = Path(__file__).resolve().parents[1] / "recipes"
-sys.path.insert(0, str(RECIPES))
 
-import train  # noqa: E402
-from config_checks import ConfigError, should_resume, validate  # noqa: E402
-from run_files import (Checkpoints, CsvTable, checkpoint_problems, checkpoint_step, identity_differences,  # noqa: E402
-                       reset_outcomes_by_quarter, stop_on_signals)
+from torchrl_reset_recipes import train
+from torchrl_reset_recipes.training.config_checks import ConfigError, validate
+from torchrl_reset_recipes.training.run_spec import should_resume
+from torchrl_reset_recipes.training.checkpoints import Checkpoints, checkpoint_problems, checkpoint_step, identity_differences
+from torchrl_reset_recipes.training.run_folder import CsvTable, reset_outcomes_by_quarter, stop_on_signals
 
 TINY = [
     "hidden_sizes=[16,16]", "heat_up=40", "task.forward_horizon=20", "forward.batch_size=16", "reset.batch_size=16",
@@ -94,14 +93,15 @@ def test_the_latest_checkpoint_is_the_newest_intact_one_and_damage_is_named(tmp_
 
 
 def test_a_resume_reads_each_checkpoint_file_once_and_again_after_any_write(tmp_path, monkeypatch):
-    import run_files
+    from torchrl_reset_recipes.training import checkpoints as checkpoint_files
+
     checkpoints = Checkpoints(tmp_path)
     folder = checkpoints.save(100, write_state(b"12345678"), {"frames": 100})
     hour_ago = os.stat(folder / "state.pt").st_mtime_ns - 3600 * 10**9  # written an hour before the resume
     for path in folder.rglob("*"):
         os.utime(path, ns=(hour_ago, hour_ago))
     read = []
-    monkeypatch.setattr(run_files, "_sha256", lambda path: read.append(Path(path).name) or sha256(path))
+    monkeypatch.setattr(checkpoint_files, "_sha256", lambda path: read.append(Path(path).name) or sha256(path))
     for _ in range(3):  # the configuration check, the check under the folder's lock, the load
         assert Checkpoints(tmp_path).survey() == (folder, [])
     assert sorted(read) == ["meta.json", "observation.memmap", "state.pt"]  # each file once
@@ -433,7 +433,7 @@ def test_a_buffer_loaded_and_saved_again_without_new_rows_is_saved_whole_and_qui
     from tensordict import TensorDict
     from torchrl.data import LazyTensorStorage, ReplayBuffer
 
-    from run_files import dump_buffer
+    from torchrl_reset_recipes.training.checkpoints import dump_buffer
 
     def buffer():
         return ReplayBuffer(storage=LazyTensorStorage(8), batch_size=4)

@@ -1,6 +1,6 @@
 """A run folder's trained agents, read back from one of its checkpoints, and what else the folder holds (its
 config, its CSV tables, its replay buffers): what the video, the probes and anyone studying a finished run
-start from (the recipe itself resumes through ``run_files``)."""
+start from (the recipe itself resumes through ``training.checkpoints``)."""
 from __future__ import annotations
 
 import csv
@@ -11,16 +11,17 @@ from pathlib import Path
 from typing import Any, Mapping
 
 import torch
+from tensordict import TensorDict
 from omegaconf import DictConfig, OmegaConf
 from torchrl.data import ReplayBuffer
 
-from agents import Agent, make_forward_agent, make_reset_agent
-from buffers import make_buffers
-from run_files import (MANIFEST, CheckpointDamaged, Checkpoints, checkpoint_problems, checkpoint_step,
-                       identity_differences)
-from task_envs import task_dimensions
+from torchrl_reset_recipes.training.agents import Agent, make_forward_agent, make_reset_agent
+from torchrl_reset_recipes.training.buffers import make_buffers
+from torchrl_reset_recipes.training.run_spec import RunSpec, run_spec
+from torchrl_reset_recipes.training.checkpoints import MANIFEST, CheckpointDamaged, Checkpoints, checkpoint_problems, checkpoint_step, identity_differences
+from torchrl_reset_recipes.training.task_envs import task_dimensions
 
-__all__ = ["SavedRun", "load_agents", "load_replay", "latest_checkpoint", "run_config", "run_table"]
+__all__ = ["SavedRun", "load_agents", "load_replay", "latest_checkpoint", "run_config", "run_table", "model_values"]
 
 _ABSENT = object()
 
@@ -32,6 +33,7 @@ class SavedRun:
     step: int  # its step (from the folder's name)
     forward: Agent | None  # None where not asked for (``agents``)
     reset: Agent | None
+    spec: RunSpec | None = None  # what the recipe worked out of ``cfg`` (the reset agent's kind, the horizons...)
 
 
 def load_agents(run_dir: Path | str, *, checkpoint: Path | str | None = None,
@@ -57,16 +59,17 @@ def load_agents(run_dir: Path | str, *, checkpoint: Path | str | None = None,
             raise KeyError(f"{key!r} is not a key of {run_dir / 'config.yaml'}: an override can only change a "
                            "setting the run has")
         OmegaConf.update(cfg, key, value)
+    spec = run_spec(cfg, check=False)  # the run's own config, checked when it ran
     obs_dim, action_spec = task_dimensions(cfg)
     state = torch.load(checkpoint / "state.pt", weights_only=False, map_location="cpu")
     forward = reset = None
     if "forward" in agents:
-        forward = make_forward_agent(cfg, obs_dim, action_spec)
+        forward = make_forward_agent(spec, obs_dim, action_spec)
         forward.loss.load_state_dict(state["forward_loss"])
     if "reset" in agents:
-        reset = make_reset_agent(cfg, obs_dim, action_spec)
+        reset = make_reset_agent(spec, obs_dim, action_spec)
         reset.loss.load_state_dict(state["reset_loss"])
-    return SavedRun(cfg, checkpoint, checkpoint_step(checkpoint), forward, reset)
+    return SavedRun(cfg, checkpoint, checkpoint_step(checkpoint), forward, reset, spec)
 
 
 def load_replay(run_dir: Path | str, agent: str = "reset", *, checkpoint: Path | str | None = None) -> ReplayBuffer:
@@ -88,7 +91,7 @@ def load_replay(run_dir: Path | str, agent: str = "reset", *, checkpoint: Path |
         raise FileNotFoundError(f"{checkpoint} holds no {agent} replay buffer"
                                 + (": a kept state holds the agents alone" if kept else
                                    f" (the {agent} agent had stored no step when it was written)"))
-    forward_rb, reset_rb = make_buffers(cfg)
+    forward_rb, reset_rb = make_buffers(run_spec(cfg, check=False))
     rb = forward_rb if agent == "forward" else reset_rb
     rb.loads(folder)
     return rb
@@ -160,3 +163,16 @@ def _check(checkpoint: Path, run_dir: Path, cfg: DictConfig) -> None:
     if differ:
         raise ValueError(f"{checkpoint} was saved by another run than {run_dir}: "
                          + ", ".join(f"{key} {saved!r} there, {value!r} here" for key, (saved, value) in differ.items()))
+
+
+def model_values(model, observation: torch.Tensor, action: torch.Tensor, key: str = "state_action_value",
+                 chunk: int = 20000) -> torch.Tensor:
+    """``model``'s output ``key`` (an ensemble's: one column per member) on the rows (observation, action),
+    without gradients, ``chunk`` rows at a time."""
+    values = []
+    with torch.no_grad():
+        for i in range(0, observation.shape[0], chunk):
+            rows = min(chunk, observation.shape[0] - i)
+            td = TensorDict({"observation": observation[i:i + rows], "action": action[i:i + rows]}, batch_size=[rows])
+            values.append(model(td)[key])
+    return torch.cat(values)

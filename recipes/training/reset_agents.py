@@ -4,8 +4,8 @@ examples) and LNT / LNT-sparse (DDPG on a Q ensemble, trained from a reward).
 Everything in the recipe that differs between the two kinds is a method of :class:`ResetAgentKind`: the
 loss and its networks, what the replay buffer keeps and how it is sampled, how a sample is completed
 before the update (success examples, or the reward), the trigger's score and threshold, and the
-configuration keys that only one kind reads. The rest of the recipe asks
-:func:`reset_kind` and never compares the algorithm's name.
+configuration keys that only one kind reads. The rest of the recipe reads the kind from the run's spec
+(:class:`~.run_spec.RunSpec`) and never compares the algorithm's name.
 """
 from __future__ import annotations
 
@@ -17,13 +17,13 @@ from tensordict import TensorDict
 from torch import nn
 from torchrl.data import LazyTensorStorage, ReplayBuffer
 
-from absent_keys import ABSENT_KEYS, setting
+from torchrl_reset_recipes.training.absent_keys import ABSENT_KEYS, setting
 from torchrl_reset import EpisodeWindowSampler, NStepStateTransform, ResetTriggerTransform, success_probability
 from torchrl_reset.ensemble import PRIOR_BIAS_DRAWS
 from torchrl_reset.ensemble_ddpg import EnsembleDDPGLoss
 from torchrl_reset.td_bounds import bound_td0_targets
 
-__all__ = ["ResetAgentKind", "RCEKind", "LNTKind", "reset_kind", "lnt_batch", "END_FLAGS"]
+__all__ = ["ResetAgentKind", "RCEKind", "LNTKind", "KINDS", "lnt_batch", "END_FLAGS"]
 
 #: the episode's end flags, kept in every replay buffer (the losses' and the n-step transform's)
 END_FLAGS = [("next", "done"), ("next", "terminated")]
@@ -44,26 +44,26 @@ class ResetAgentKind:
     #: how its trigger reduces the members' scores
     reduction: str
 
-    def build(self, cfg: DictConfig, actor, obs_dim: int, act_dim: int, parts):
+    def build(self, spec, actor, obs_dim: int, act_dim: int, parts):
         """Its model (the ensemble) and loss module on ``actor``; returns ``(model, loss, param_groups)``."""
         raise NotImplementedError
 
-    def fresh_targets(self, cfg: DictConfig, loss, obs_dim: int, act_dim: int, parts, make_actor) -> list[tuple]:
+    def fresh_targets(self, spec, loss, obs_dim: int, act_dim: int, parts, make_actor) -> list[tuple]:
         """Newly drawn networks whose parameters its loss's targets take at the start, as ``(network, name of
         those targets in the loss)``; empty where its targets stay copies. ``make_actor()`` draws a reset actor."""
         return []
 
-    def replay(self, cfg: DictConfig, size: int, batch_size: int | None) -> ReplayBuffer:
+    def replay(self, spec, size: int, batch_size: int | None) -> ReplayBuffer:
         """Its replay buffer of ``size`` rows."""
         raise NotImplementedError
 
-    def buffer_keys(self, cfg: DictConfig, agent) -> list[tuple]:
+    def buffer_keys(self, spec, agent) -> list[tuple]:
         """The entries its replay buffer keeps: what its loss reads (``loss.in_keys``; entries the sample gets
         later, such as the success examples, are not in a collected step and are skipped), its end flags,
         and what its buffer's own transform reads."""
         raise NotImplementedError
 
-    def prepare(self, sample, info: dict, examples, cfg: DictConfig):
+    def prepare(self, sample, info: dict, examples, spec):
         """Completes a replay sample for the loss (``info``: what the buffer's sampler returned)."""
         raise NotImplementedError
 
@@ -89,45 +89,46 @@ class RCEKind(ResetAgentKind):
 
     name, critic_loss, scores_probability, reduction = "ours", "loss_classifier", True, "mean"
 
-    def build(self, cfg, actor, obs_dim, act_dim, parts):
+    def build(self, spec, actor, obs_dim, act_dim, parts):
+        cfg = spec.cfg
         model = parts.ensemble(
             obs_dim, act_dim, num_members=cfg.algo.num_members, hidden_sizes=tuple(cfg.hidden_sizes),
             prior_scale=cfg.algo.prior_scale,
-            prior_bias_draw=setting(cfg, "algo.prior_bias_draw"),
+            prior_bias_draw=spec["algo.prior_bias_draw"],
         )
-        _pessimistic_start(cfg, model)  # not the paper's, when set; before the targets copy the networks
+        _pessimistic_start(spec, model)  # not the paper's, when set; before the targets copy the networks
         loss = parts.rce_loss(actor, model, gamma=cfg.gamma, n_steps=cfg.algo.n_steps,
-                              clip_target_values=bool(OmegaConf.select(cfg, "algo.clip_target_values", default=False)))
+                              clip_target_values=bool(spec["algo.clip_target_values"]))
         groups = [{"params": list(actor.parameters()), "lr": cfg.reset.actor_lr},
                   {"params": list(model.parameters()), "lr": cfg.reset.critic_lr}]  # the priors are buffers
         return model, loss, groups
 
-    def fresh_targets(self, cfg, loss, obs_dim, act_dim, parts, make_actor):
+    def fresh_targets(self, spec, loss, obs_dim, act_dim, parts, make_actor):
         # target_init: release: the target classifiers' trained part starts as networks of their own (the same
         # priors); RCE never reads the reset actor's target
-        if setting(cfg, "target_init") != "release":
+        if spec["target_init"] != "release":
             return []
+        cfg = spec.cfg
         fresh = parts.ensemble(obs_dim, act_dim, num_members=cfg.algo.num_members,
                                hidden_sizes=tuple(cfg.hidden_sizes), prior_scale=0.0)
-        _pessimistic_start(cfg, fresh)  # the pessimistic start's output bias holds for the targets too
+        _pessimistic_start(spec, fresh)  # the pessimistic start's output bias holds for the targets too
         return [(fresh, "target_classifier_network_params")]
 
-    def replay(self, cfg, size, batch_size):
+    def replay(self, spec, size, batch_size):
         # the n-step state beside the next state; with algo.nstep_sampling: episode (the release), episodes
         # first, then a window of n steps inside one
-        episodes = OmegaConf.select(cfg, "algo.nstep_sampling", default="episode") == "episode"
+        episodes, n = spec["algo.nstep_sampling"] == "episode", spec.cfg.algo.n_steps
         return ReplayBuffer(storage=LazyTensorStorage(size), batch_size=batch_size,
-                            transform=NStepStateTransform(cfg.algo.n_steps),
-                            sampler=EpisodeWindowSampler(cfg.algo.n_steps) if episodes else None)
+                            transform=NStepStateTransform(n), sampler=EpisodeWindowSampler(n) if episodes else None)
 
-    def buffer_keys(self, cfg, agent):
+    def buffer_keys(self, spec, agent):
         # the n-step transform reads the trajectory id beside the end flags
         return [*map(_nested, agent.loss.in_keys), *END_FLAGS, ("collector", "traj_ids")]
 
-    def prepare(self, sample, info, examples, cfg):
+    def prepare(self, sample, info, examples, spec):
         if info.get("fallback", False):  # no reset episode has n transitions yet: the release's one-step label
             sample.set("one_step", torch.ones(sample.shape[0], dtype=torch.bool, device=sample.device))
-        sample.set("example", examples.sample(sample.shape[0]).to(cfg.device))  # as many success examples
+        sample.set("example", examples.sample(sample.shape[0]).to(spec.cfg.device))  # as many success examples
         return sample
 
     def threshold(self, cfg):
@@ -166,13 +167,14 @@ class LNTKind(ResetAgentKind):
     def __init__(self, name: str) -> None:
         self.name = name
 
-    def build(self, cfg, actor, obs_dim, act_dim, parts):
+    def build(self, spec, actor, obs_dim, act_dim, parts):
+        cfg = spec.cfg
         model = parts.ensemble(
             obs_dim, act_dim, num_members=cfg.algo.num_members, hidden_sizes=tuple(cfg.hidden_sizes),
             prior_scale=cfg.algo.prior_scale, out_keys=["state_action_value"],
         )
-        bounds = OmegaConf.select(cfg, "algo.reward_bounds", default=None)
-        independent, per_member = setting(cfg, "algo.independent_batches"), setting(cfg, "algo.member_actor_gradient")
+        bounds = spec["algo.reward_bounds"]
+        independent, per_member = spec["algo.independent_batches"], spec["algo.member_actor_gradient"]
         if independent or per_member:  # the authors' K-critic DDPG class (not the project's default LNT)
             loss = EnsembleDDPGLoss(actor, model, gamma=cfg.gamma, independent_batches=independent,
                                     member_actor_gradient=per_member, reward_key="lnt_reward",
@@ -187,11 +189,12 @@ class LNTKind(ResetAgentKind):
                   {"params": list(loss.value_network_params.values(True, True)), "lr": cfg.reset.critic_lr}]
         return model, loss, groups
 
-    def fresh_targets(self, cfg, loss, obs_dim, act_dim, parts, make_actor):
+    def fresh_targets(self, spec, loss, obs_dim, act_dim, parts, make_actor):
         # algo.target_draws (the release's constructors): the actor's target and every member's but the last
         # start as independent draws; the last member's target stays a copy (its constructor synced it last)
-        if not setting(cfg, "algo.target_draws"):
+        if not spec["algo.target_draws"]:
             return []
+        cfg = spec.cfg
         members = parts.ensemble(obs_dim, act_dim, num_members=cfg.algo.num_members,
                                  hidden_sizes=tuple(cfg.hidden_sizes), prior_scale=0.0,
                                  out_keys=["state_action_value"])
@@ -200,27 +203,27 @@ class LNTKind(ResetAgentKind):
                 value[-1].copy_(loss.value_network_params.get(key)[-1])
         return [(make_actor(), "target_actor_network_params"), (members, "target_value_network_params")]
 
-    def replay(self, cfg, size, batch_size):
+    def replay(self, spec, size, batch_size):
         # algo.independent_batches: K batches per update, drawn as one of K * B rows (prepare() splits them);
         # algo.sampling: episode, the release's buffer: an episode first, then a step in it
-        if setting(cfg, "algo.independent_batches"):
-            batch_size = int(cfg.algo.num_members) * batch_size
-        episodes = setting(cfg, "algo.sampling") == "episode"
+        if spec["algo.independent_batches"]:
+            batch_size = int(spec.cfg.algo.num_members) * batch_size
+        episodes = spec["algo.sampling"] == "episode"
         return ReplayBuffer(storage=LazyTensorStorage(size), batch_size=batch_size,
                             sampler=EpisodeWindowSampler(1) if episodes else None)
 
-    def buffer_keys(self, cfg, agent):
+    def buffer_keys(self, spec, agent):
         # its rows are single transitions; the reward comes from these two (and the episode-first sampler reads
         # the trajectory id)
-        episodes = [("collector", "traj_ids")] if setting(cfg, "algo.sampling") == "episode" else []
+        episodes = [("collector", "traj_ids")] if spec["algo.sampling"] == "episode" else []
         return [*map(_nested, agent.loss.in_keys), *END_FLAGS, ("next", "reset_reward"), ("next", "reset_success"),
                 *episodes]
 
-    def prepare(self, sample, info, examples, cfg):
-        members = int(cfg.algo.num_members)
-        if setting(cfg, "algo.independent_batches"):  # member k's batch at [k]
+    def prepare(self, sample, info, examples, spec):
+        members = int(spec.cfg.algo.num_members)
+        if spec["algo.independent_batches"]:  # member k's batch at [k]
             sample = sample.reshape(members, -1)
-        return lnt_batch(sample, cfg.algo, members)
+        return lnt_batch(sample, spec.cfg.algo, members)
 
     def threshold(self, cfg):
         return float(cfg.algo.threshold)  # Q_thresh
@@ -252,14 +255,6 @@ KINDS = {"ours": RCEKind(), "lnt": LNTKind("lnt"), "lnt_sparse": LNTKind("lnt_sp
          "lnt_release": LNTKind("lnt_release"), "lnt_sparse_release": LNTKind("lnt_sparse_release")}
 
 
-def reset_kind(cfg: DictConfig) -> ResetAgentKind:
-    """The reset agent of ``cfg.algo.name``."""
-    try:
-        return KINDS[cfg.algo.name]
-    except KeyError:
-        raise ValueError(f"unknown algorithm {cfg.algo.name!r}; known: {', '.join(KINDS)}") from None
-
-
 def lnt_batch(sample, algo: DictConfig, num_members: int):
     """The LNT reset agent's batch: its reward (shaped or sparse) and done flags, one column per ensemble member.
     With ``algo.success_terminal`` (not the paper's) a step into the success check is terminal for the TD
@@ -277,9 +272,9 @@ def lnt_batch(sample, algo: DictConfig, num_members: int):
     return sample
 
 
-def _pessimistic_start(cfg: DictConfig, ensemble: nn.Module) -> None:
+def _pessimistic_start(spec, ensemble: nn.Module) -> None:
     """``algo.initial_logit_bias`` (not the paper's): the members' output bias set to it."""
-    bias = OmegaConf.select(cfg, "algo.initial_logit_bias", default=None)
+    bias = spec["algo.initial_logit_bias"]
     if bias is not None:
         with torch.no_grad():
             getattr(ensemble, f"bias_{ensemble.num_layers - 1}").fill_(float(bias))

@@ -1,0 +1,1 @@
+"""Short programs that write the method out on small problems."""

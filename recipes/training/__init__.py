@@ -1,0 +1,1 @@
+"""What a training run is built from (``recipes/train.py`` composes it)."""

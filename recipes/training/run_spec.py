@@ -1,0 +1,116 @@
+"""One run's configuration, checked once and read everywhere as a :class:`RunSpec`.
+
+``run_spec(cfg)`` refuses a configuration that cannot run (:func:`~.config_checks.validate`), then works out,
+once, what the rest of the recipe reads: the reset agent's kind, the trigger's threshold, the horizons, the
+threads, whether the run resumes, and the value of every setting that has a default for configurations
+without it (:data:`DEFAULTS`). The agents, buffers, envs, collector, learner and records take the spec; none
+of them looks a setting up in the raw configuration or works out the kind again.
+"""
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from types import MappingProxyType
+from typing import Any, Mapping
+
+from omegaconf import DictConfig, OmegaConf
+
+from torchrl_reset_recipes.training.absent_keys import ABSENT_KEYS
+from torchrl_reset_recipes.training.checkpoints import Checkpoints
+from torchrl_reset_recipes.training.reset_agents import KINDS, ResetAgentKind
+
+__all__ = ["RunSpec", "run_spec", "DEFAULTS", "FALLBACKS", "reset_horizon", "torch_threads", "should_resume"]
+
+#: settings that every configuration of today's recipe holds, and what code reading an older or hand-made
+#: configuration without them uses (the report reads such runs through :data:`ABSENT_KEYS` alone)
+FALLBACKS = {
+    "speed.accelerate": True,
+    "speed.fused_adam": False,
+    "speed.retain_memory": True,
+    "speed.matmul_precision": "ieee",
+    "speed.compile": [],
+    "keep_states_every": None,
+    "reset.tau": None,                       # None: the shared tau
+    "task.exploration": None,                # the task's own exploration.* entries (cliff-walker's)
+    "algo.clip_target_values": False,
+    "algo.nstep_sampling": "episode",
+    "algo.reward_bounds": None,
+    "algo.initial_logit_bias": None,
+}
+#: every setting with a default, in one table: what a configuration without the key runs with
+DEFAULTS = MappingProxyType({**ABSENT_KEYS, **FALLBACKS})
+
+
+@dataclass(frozen=True)
+class RunSpec:
+    """A checked configuration and what the recipe works out of it once.
+
+    ``spec["update_order"]`` is the value of a setting of :data:`DEFAULTS` (the configuration's, or the default
+    where it lacks the key); any other key is read from ``spec.cfg``.
+    """
+
+    cfg: DictConfig
+    kind: ResetAgentKind
+    #: the reset trigger's threshold: p_thresh for ours (a success probability), Q_thresh for LNT (a value)
+    trigger_threshold: float
+    forward_horizon: int  # H_f
+    reset_horizon: int  # H_r
+    threads: int  # torch threads of this process
+    resume: bool  # continue from the run folder's newest intact checkpoint
+    settings: Mapping[str, Any] = field(repr=False)
+
+    def __getitem__(self, key: str):
+        return self.settings[key]
+
+
+def run_spec(cfg: DictConfig, *, check: bool = True) -> RunSpec:
+    """The :class:`RunSpec` of ``cfg``, refused first (:class:`~.config_checks.ConfigError`) if it cannot run."""
+    if check:
+        from torchrl_reset_recipes.training.config_checks import validate
+
+        validate(cfg)
+    kind = KINDS[cfg.algo.name]
+    settings = {key: _plain(OmegaConf.select(cfg, key, default=value)) for key, value in DEFAULTS.items()}
+    return RunSpec(cfg=cfg, kind=kind, trigger_threshold=kind.threshold(cfg),
+                   forward_horizon=int(cfg.task.forward_horizon), reset_horizon=reset_horizon(cfg),
+                   threads=torch_threads(cfg), resume=should_resume(cfg), settings=MappingProxyType(settings))
+
+
+def _plain(value):
+    """A setting's value as plain Python (lists and mappings out of OmegaConf)."""
+    if OmegaConf.is_config(value):
+        return OmegaConf.to_container(value, resolve=True)
+    return value
+
+
+def reset_horizon(cfg: DictConfig) -> int:
+    """H_r: ``reset.max_steps``, or 2 H_f where it is null."""
+    return 2 * int(cfg.task.forward_horizon) if cfg.reset.max_steps is None else int(cfg.reset.max_steps)
+
+
+def should_resume(cfg: DictConfig) -> bool:
+    """``resume``: true, false, or auto (continue from the run folder's checkpoint when it has one:
+    launching the same grid again continues every run where it stopped). A checkpoint is what
+    :meth:`Checkpoints.folders` lists, intact or not: resuming takes the newest intact one
+    (:meth:`Checkpoints.latest`), and a folder whose checkpoints are all damaged stops with an error instead
+    of starting over."""
+    if cfg.resume == "auto":
+        return bool(Checkpoints(Path(cfg.run_dir) / "checkpoints").folders())
+    return bool(cfg.resume)
+
+
+def torch_threads(cfg: DictConfig) -> int:
+    """``threads``: a number, or auto: one per run in a Hydra multirun (runs go in parallel, one per
+    core), else up to two."""
+    if cfg.threads != "auto":
+        return int(cfg.threads)
+    try:
+        from hydra.core.hydra_config import HydraConfig
+        from hydra.types import RunMode
+
+        if HydraConfig.initialized() and HydraConfig.get().mode == RunMode.MULTIRUN:
+            return 1
+    except (ImportError, ValueError):
+        pass
+    return max(1, min(2, os.cpu_count() or 1))
