@@ -127,10 +127,12 @@ def _config(tmp_path, *overrides):
     return quick_config(tmp_path, *overrides)
 
 
-@pytest.mark.parametrize("algo", ["ours", "lnt"])
-@pytest.mark.parametrize("remedy", [["reset_actor=release", "reset.actor.head=inverting"],
-                                    ["reset_actor=release", "reset.actor.preact_penalty=0.01"],
-                                    ["reset.actor.head=tanh_normal", "reset.actor.entropy=auto"]])
+@pytest.mark.parametrize("algo, remedy", [
+    ("ours", ["reset_actor=release", "reset.actor.head=inverting"]),
+    ("lnt", ["reset_actor=release", "reset.actor.preact_penalty=0.01"]),
+    ("ours", ["reset.actor.head=tanh_normal", "reset.actor.entropy=auto"]),
+    ("lnt", ["reset.actor.head=tanh_normal", "reset.actor.entropy=auto"]),
+], ids=["ours-inverting", "lnt-preact", "ours-tanh_normal_auto", "lnt-tanh_normal_auto"])
 def test_each_remedy_trains_and_every_run_logs_saturation(tmp_path, algo, remedy):
     summary = train.train(_config(tmp_path, f"algo={algo}", *remedy))
     assert summary["finished"]

@@ -52,7 +52,16 @@ def rows(path):
         return list(csv.DictReader(f))
 
 
-@pytest.mark.parametrize("algo", ALGOS)
+#: the paper's three algorithms on every task; the release's LNT ensembles (the other kinds of ALGOS, the same
+#: task code) train in tests/test_ensemble_ddpg.py
+PAPER_ALGOS = ("ours", "lnt", "lnt_sparse")
+
+
+def test_the_task_matrix_covers_every_kind_of_reset_agent():
+    assert set(PAPER_ALGOS) <= set(ALGOS) and set(ALGOS) - set(PAPER_ALGOS) == {"lnt_release", "lnt_sparse_release"}
+
+
+@pytest.mark.parametrize("algo", PAPER_ALGOS)
 @pytest.mark.parametrize("task", list(TASKS))
 def test_every_task_and_algorithm_trains_for_a_few_hundred_steps(tmp_path, task, algo):
     summary = train.train(config(tmp_path, f"task={task}", f"algo={algo}", "total_steps=200"))
