@@ -11,7 +11,7 @@ RECIPES = Path(__file__).resolve().parents[1] / "recipes"
 TINY = [
     "hidden_sizes=[16,16]", "heat_up=40", "task.forward_horizon=20", "forward.batch_size=16", "reset.batch_size=16",
     "forward.buffer_size=2000", "reset.buffer_size=2000", "eval_every=100", "log_every=50", "checkpoint_every=100",
-    "progress_bar=false", "total_steps=200",
+    "progress_bar=false", "total_steps=100",
 ]
 
 
@@ -25,17 +25,17 @@ def test_a_tiny_grid_runs_through_the_local_launcher_and_the_report_reads_it(tmp
     assert runs == [f"ball_in_cup_catch/{algo}/seed0" for algo in ("lnt_sparse", "ours")]
     for run in runs:
         summary = json.loads((sweep / run / "summary.json").read_text())
-        assert summary["steps"] == 200 and summary["finished"]
+        assert summary["steps"] == 100 and summary["finished"]
         assert (sweep / run / "config.yaml").exists() and (sweep / run / "code.jsonl").exists()
     # Hydra's own files go beside the runs, one folder per job
     assert len(list(sweep.glob("multirun/*/*/.hydra"))) == 2
     # relaunching the same grid with resume=auto continues each run from its checkpoint
-    again = subprocess.run([*command, "resume=auto", "total_steps=300"], capture_output=True, text=True, timeout=600)
+    again = subprocess.run([*command, "resume=auto", "total_steps=150"], capture_output=True, text=True, timeout=600)
     assert again.returncode == 0, again.stderr[-3000:]
     for run in runs:
         summary = json.loads((sweep / run / "summary.json").read_text())
-        assert summary["steps"] == 300
-        assert [json.loads(line)["from_step"] for line in (sweep / run / "code.jsonl").read_text().splitlines()] == [0, 200]
+        assert summary["steps"] == 150
+        assert [json.loads(line)["from_step"] for line in (sweep / run / "code.jsonl").read_text().splitlines()] == [0, 100]
     report = subprocess.run([sys.executable, str(RECIPES / "analysis" / "report.py"), str(sweep), "--out", str(tmp_path / "report")],
                             capture_output=True, text=True, timeout=300)
     assert report.returncode == 0, report.stderr[-3000:]
