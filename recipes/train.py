@@ -32,17 +32,15 @@ import torch
 from omegaconf import DictConfig
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
-
+from torchrl_reset import DualCollector
+from torchrl_reset_envs.ur3_backends import RobotFault
 from torchrl_reset_recipes.training.agents import Agent
+from torchrl_reset_recipes.training.checkpoints import CheckpointDamaged, Checkpoints
 from torchrl_reset_recipes.training.config_checks import RETIRED_KEYS, ConfigError, retired_key_problem, validate
-from torchrl_reset_recipes.training.run_spec import RunSpec, run_spec
 from torchrl_reset_recipes.training.learner import NonFiniteLoss
-from torchrl_reset_recipes.training.checkpoints import Checkpoints, CheckpointDamaged
 from torchrl_reset_recipes.training.run_folder import RunFolderBusy, RunInterrupted, run_folder_lock, stop_on_signals
+from torchrl_reset_recipes.training.run_spec import RunSpec, run_spec
 from torchrl_reset_recipes.training.single_run import RobotStopped, TrainingDiverged, build_run, set_up_process
-
-from torchrl_reset import DualCollector  # noqa: E402
-from torchrl_reset_envs.ur3_backends import RobotFault  # noqa: E402
 
 log = logging.getLogger("torchrl_reset.train")
 
