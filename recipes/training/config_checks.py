@@ -30,6 +30,11 @@ RETIRED_KEYS = ("seeds", "arms", "vary", "vary_values", "speed.batched_acting")
 LAST_BATCHING_COMMIT = "eb8b414"
 
 
+#: the settings that take one of two words, and those words (a configuration without the key: absent_keys)
+CHOICES = {"exploration.restart": ("never", "episode"), "update_order": ("release", "joint"),
+           "forward.sampling": ("episode", "transition"), "target_init": ("release", "copy")}
+
+
 class ConfigError(ValueError):
     """A configuration that cannot run; raised before anything is built."""
 
@@ -100,18 +105,10 @@ def validate(cfg: DictConfig) -> None:
     compile_agents = OmegaConf.select(cfg, "speed.compile", default=[])
     if not OmegaConf.is_list(compile_agents) or not set(compile_agents) <= {"forward", "reset"}:
         problems.append(f"speed.compile must be a list of agents among forward, reset; got {compile_agents!r}")
-    restart = setting(cfg, "exploration.restart")
-    if restart not in ("never", "episode"):
-        problems.append(f"exploration.restart must be never or episode, got {restart!r}")
-    order = setting(cfg, "update_order")
-    if order not in ("release", "joint"):
-        problems.append(f"update_order must be release or joint, got {order!r}")
-    sampling = setting(cfg, "forward.sampling")
-    if sampling not in ("episode", "transition"):
-        problems.append(f"forward.sampling must be episode or transition, got {sampling!r}")
-    target_init = setting(cfg, "target_init")
-    if target_init not in ("release", "copy"):
-        problems.append(f"target_init must be release or copy, got {target_init!r}")
+    for key, choices in CHOICES.items():
+        value = setting(cfg, key)
+        if value not in choices:
+            problems.append(f"{key} must be {' or '.join(choices)}, got {value!r}")
     if not isinstance(setting(cfg, "exploration.clip"), bool):
         problems.append(f"exploration.clip must be true or false, got {OmegaConf.select(cfg, 'exploration.clip')!r}")
     problems += actor_problems(cfg)
