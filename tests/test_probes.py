@@ -4,12 +4,12 @@ folders, made once per session by the recipe, and prints what it should. Also th
 from __future__ import annotations
 
 import ast
-import os
 import re
 import runpy
 import shutil
 import subprocess
 import sys
+import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
@@ -74,7 +74,6 @@ class ProbeRun:
     args: Callable[[Runs, Path], list]
     prints: tuple[str, ...]
     wrote: Callable[[Runs, Path], None] | None = None
-    timeout: int = 180
 
 
 def _series_csv_matches_the_committed_ones(runs: Runs, out: Path) -> None:
@@ -206,7 +205,10 @@ def test_every_probe_answers_help(probe, monkeypatch, capsys):
 
 
 @pytest.mark.parametrize("probe", PROBES, ids=_name)
-def test_every_probe_runs_on_a_run_folder(probe, request, tmp_path):
+def test_every_probe_runs_on_a_run_folder(probe, request, tmp_path, monkeypatch, capsys):
+    """Each probe run as ``python <probe> <args>`` would run it, in this process (its imports are made once for the
+    session, not once per probe): its arguments, the working directory the results' READMEs run it from, temporary
+    folders (example_action's runs) in the test's own folder; it must end without an error and print its lines."""
     name = _name(probe)
     if name not in PROBE_RUNS:
         pytest.fail(f"{name} has no entry in PROBE_RUNS (tests/test_probes.py): add the arguments that run it, small, "
@@ -216,14 +218,18 @@ def test_every_probe_runs_on_a_run_folder(probe, request, tmp_path):
     entry = PROBE_RUNS[name]
     runs = request.getfixturevalue("runs")  # made once, on the first probe that has an entry
     args = [str(a) for a in entry.args(runs, tmp_path)]
-    # the working directory the results' READMEs run them from; temporary folders (example_action's runs) in tmp_path
-    done = subprocess.run([sys.executable, str(probe), *args], cwd=ROOT, capture_output=True, text=True,
-                          timeout=entry.timeout, env={**os.environ, "TMPDIR": str(tmp_path)})
-    assert done.returncode == 0, (f"{name} {' '.join(args)} exited with {done.returncode}:\n"
-                                  f"{done.stdout[-3000:]}\n{done.stderr[-3000:]}")
-    lines = done.stdout.splitlines()
+    monkeypatch.chdir(ROOT)
+    monkeypatch.setattr(sys, "argv", [str(probe), *args])
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
+    capsys.readouterr()
+    try:
+        runpy.run_path(str(probe), run_name="__main__")
+    except SystemExit as exited:
+        assert exited.code in (0, None), f"{name} {' '.join(args)} exited with {exited.code!r}:\n{capsys.readouterr()}"
+    out = capsys.readouterr().out
+    lines = out.splitlines()
     missing = [pattern for pattern in entry.prints if not any(re.search(pattern, line) for line in lines)]
-    assert not missing, f"{name} printed no line matching {missing}:\n{done.stdout[-3000:]}"
+    assert not missing, f"{name} printed no line matching {missing}:\n{out[-3000:]}"
     if entry.wrote is not None:
         entry.wrote(runs, tmp_path)
 

@@ -45,15 +45,18 @@ def train(cells_weights, num_states=7, steps=2500, batch=64, n_steps=1, seed=0):
         for _ in range(n_steps):
             cell = transitions[cell]
         nstep_cell[k] = cell
+    next_of = torch.tensor([transitions[k] for k in range(num_states)])
+    nstep_of = torch.tensor([nstep_cell[k] for k in range(num_states)])
     probs = torch.tensor(cells_weights, dtype=torch.float)
     for _ in range(steps):
         cells = torch.multinomial(probs, batch, replacement=True)
         data = TensorDict(
             observation=one_hot(cells, num_states),
             action=torch.full((batch, 1), LEFT),
-            next=TensorDict(observation=one_hot([transitions[int(c)] for c in cells], num_states), batch_size=[batch]),
-            nstep=TensorDict(observation=one_hot([nstep_cell[int(c)] for c in cells], num_states), batch_size=[batch]),
-            example=TensorDict(observation=one_hot([0] * batch, num_states), batch_size=[batch]),
+            next=TensorDict(observation=one_hot(next_of[cells], num_states), batch_size=[batch]),
+            nstep=TensorDict(observation=one_hot(nstep_of[cells], num_states), batch_size=[batch]),
+            example=TensorDict(observation=one_hot(torch.zeros(batch, dtype=torch.long), num_states),
+                               batch_size=[batch]),
             batch_size=[batch],
         )
         optimizer.zero_grad()
@@ -67,7 +70,7 @@ def train(cells_weights, num_states=7, steps=2500, batch=64, n_steps=1, seed=0):
 
 def test_classifiers_trained_under_a_fixed_reset_policy_approach_gamma_to_the_t():
     n = 7
-    p = train([0.0] + [1.0] * (n - 1), num_states=n)
+    p = train([0.0] + [1.0] * (n - 1), num_states=n, steps=1200)  # within 0.002 on seeds 0-2 at 1,200 updates
     expected = torch.tensor([GAMMA**k for k in range(n)])
     # every member, and their mean (what the trigger reads), within 0.01 of gamma ** T
     assert (p - expected.unsqueeze(-1)).abs().max() < 0.01, (p, expected)

@@ -114,9 +114,10 @@ def test_the_plain_reference_path_trains_like_the_accelerator(tmp_path, algo):
         assert float(a[key]) == pytest.approx(float(b[key]), rel=1e-3, abs=1e-5), key
 
 
-@pytest.mark.parametrize("algo", ["ours", "lnt"])
-def test_a_resumed_run_reproduces_the_uninterrupted_run(tmp_path, algo):
-    common = ["task=peg_insertion_remove", f"algo={algo}"]
+def test_a_resumed_run_reproduces_the_uninterrupted_run(tmp_path):
+    """LNT's reset agent (20 critics, their targets, the bounded estimator) resumed: the same rows. Ours resumed
+    is the Ctrl-C test's (through the printed command) and run_folder's (from the checkpoint before a damaged one)."""
+    common = ["task=peg_insertion_remove", "algo=lnt"]
     whole = train.train(config(tmp_path / "whole", *common, "total_steps=400"))
     train.train(config(tmp_path / "split", *common, "total_steps=200"))
     resumed = train.train(config(tmp_path / "split", *common, "total_steps=400", "resume=true"))
@@ -691,11 +692,11 @@ def test_ctrl_c_ends_the_run_after_its_step_and_the_printed_command_resumes_it_e
 @pytest.mark.parametrize("override, message", [
     ("+total_step=1000", "unknown key total_step: .*the closest known key is total_steps"),
     ("run_dir=FILE", "run_dir must name a folder, but .*file is a file"),
-    ("task.p_thresh=1.5", r"task.p_thresh must lie in \(0, 1\)"),
     ("seeds=3", r"unknown key seeds: run batching .* was retired.*-m seed=0,1,2"),
-    ("+arms=2", r"unknown key arms: run batching .* was retired.*-m seed=0,1,2"),
-], ids=["misspelled-key", "run-dir-a-file", "bad-value", "retired-seeds", "retired-arms"])
+], ids=["misspelled-key", "run-dir-a-file", "retired-seeds"])
 def test_a_refused_command_exits_2_with_the_reason_and_leaves_nothing_behind(tmp_path, override, message):
+    """The three ways a command is refused: by the config's check (after Hydra composed it), by the run folder, and
+    before Hydra (a retired key without ``+``). Every message of the check is tested in this process elsewhere."""
     (tmp_path / "file").write_text("kept")
     run_dir = str(tmp_path / "file") if override == "run_dir=FILE" else str(tmp_path / "run")
     args = [sys.executable, str(RECIPES / "train.py"), "task=cliff_cheetah", f"run_dir={run_dir}"]
@@ -719,8 +720,8 @@ def test_keys_the_recipe_does_not_define_are_refused_and_those_its_groups_add_ar
         validate(config(tmp_path, "+zzz=1"))
     # the keys of run batching, retired, say so and what runs seeds instead
     with pytest.raises(ConfigError) as refused:
-        validate(config(tmp_path, "+seeds=3", "+speed.batched_acting=false"))
-    for key in ("seeds", "speed.batched_acting"):
+        validate(config(tmp_path, "+seeds=3", "+arms=2", "+speed.batched_acting=false"))
+    for key in ("seeds", "arms", "speed.batched_acting"):
         assert re.search(rf"unknown key {key}: run batching .* was retired.*-m seed=0,1,2", str(refused.value))
     validate(config(tmp_path, "task=peg_insertion_insert", "+task.exploration.sigma=0.1"))  # cliff_walker's key
     validate(config(tmp_path, "task=ur3_peg", "+env.acceleration=1.0"))  # env holds the env's own arguments
