@@ -43,7 +43,6 @@ from hydra import compose, initialize_config_dir
 from tensordict import TensorDict
 from torch.utils._python_dispatch import TorchDispatchMode
 from torch.utils.flop_counter import flop_registry
-from torchrl.objectives import DDPGLoss
 
 ROOT = Path(__file__).resolve().parents[1]
 

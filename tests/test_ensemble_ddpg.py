@@ -112,7 +112,6 @@ def test_without_member_gradients_the_actor_ascends_the_members_mean():
 
 # -- the recipe's keys and presets ---------------------------------------------------------------------------
 
-import sys  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 from helpers import quick_config  # noqa: E402

@@ -19,7 +19,7 @@ from torchrl_reset_envs import UR3Env
 from torchrl_reset_envs.ur3 import console_manual_reset
 from torchrl_reset_envs.ur3_backends import SimBackend
 from torchrl_reset_envs.ur3_rtde import RTDEBackend
-from torchrl_reset_envs.ur3_model import HOME_Q, VELOCITY_LIMITS, build_ur3_spec
+from torchrl_reset_envs.ur3_model import HOME_Q, build_ur3_spec
 from torchrl_reset_envs.ur3_safety import SafetyFilter, SafetyLimits, nearest_feasible
 
 PERIOD = 0.04

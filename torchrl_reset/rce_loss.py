@@ -429,7 +429,6 @@ class RCELoss(LossModule):
 
     def _classifier_terms(self, replay, states, action, examples):
         """Eq. 2 on the batch: the classifier loss summed over members, with its label, weight and logits."""
-        gamma = self.gamma
         with torch.no_grad():
             label, weight = self._label_and_weight(replay)
             example_action = self._act(examples)  # a ~ pi(s*) in Eq. 2's first term

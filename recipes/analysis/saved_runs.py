@@ -15,13 +15,15 @@ from tensordict import TensorDict
 from omegaconf import DictConfig, OmegaConf
 from torchrl.data import ReplayBuffer
 
+from torchrl_reset_recipes.train import update
 from torchrl_reset_recipes.training.agents import Agent, make_forward_agent, make_reset_agent
 from torchrl_reset_recipes.training.buffers import make_buffers
 from torchrl_reset_recipes.training.run_spec import RunSpec, run_spec
 from torchrl_reset_recipes.training.checkpoints import MANIFEST, CheckpointDamaged, Checkpoints, checkpoint_problems, checkpoint_step, identity_differences
 from torchrl_reset_recipes.training.task_envs import task_dimensions
 
-__all__ = ["SavedRun", "load_agents", "load_replay", "latest_checkpoint", "run_config", "run_table", "model_values"]
+__all__ = ["SavedRun", "load_agents", "load_replay", "latest_checkpoint", "run_config", "run_table", "model_values",
+           "ensemble_minimum", "offline_updates"]
 
 _ABSENT = object()
 
@@ -176,3 +178,30 @@ def model_values(model, observation: torch.Tensor, action: torch.Tensor, key: st
             td = TensorDict({"observation": observation[i:i + rows], "action": action[i:i + rows]}, batch_size=[rows])
             values.append(model(td)[key])
     return torch.cat(values)
+
+
+def ensemble_minimum(model, forward: TensorDict, near: TensorDict, q_thresh: float) -> dict[str, float]:
+    """What LNT's trigger reads, the ensemble's minimum over its members, on two sets of rows (observation,
+    action): ``forward`` (the states the trigger scores) and ``near`` (reset rows one step from success). Their
+    means, the shares below ``q_thresh`` (where the trigger fires), and the members' spread on ``forward``."""
+    values = {name: model_values(model, rows["observation"], rows["action"]) for name, rows in
+              (("forward", forward), ("near_success", near))}
+    stats = {}
+    for name, q in values.items():
+        minimum = q.min(-1).values
+        stats[f"{name}_min_mean"] = float(minimum.mean())
+        stats[f"{name}_below_q_thresh"] = float((minimum < q_thresh).float().mean())
+        if name == "forward":
+            stats["forward_member_std"] = float(q.std(-1).mean())
+    return stats
+
+
+def offline_updates(agent: Agent, next_batch, updates: int, every: int, watch, *, release_order: bool = True) -> None:
+    """``updates`` of the recipe's update of ``agent`` (``train.update``), each on the batch ``next_batch()``
+    returns, and ``watch(step)`` before the first and after every ``every``-th: how the probes train an agent
+    offline on a run's saved rows and record its course."""
+    watch(0)
+    for step in range(1, updates + 1):
+        update(agent, next_batch(), agent.loss, release_order=release_order)
+        if step % every == 0:
+            watch(step)

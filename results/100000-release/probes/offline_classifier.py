@@ -33,9 +33,9 @@ from torchrl_reset_recipes.training.agents import make_reset_agent
 from torchrl_reset_recipes.training.run_spec import run_spec
 from torchrl_reset_recipes.training.buffers import make_buffers
 from torchrl_reset_recipes.training.learner import make_collector
-from torchrl_reset_recipes.train import update
 from torchrl_reset_recipes.training.agents import make_forward_agent
 from torchrl_reset_recipes.training.task_envs import make_task_env, task_dimensions
+from torchrl_reset_recipes.analysis.saved_runs import offline_updates
 
 from torchrl_reset import DualCollector, success_probability  # noqa: E402
 
@@ -125,13 +125,12 @@ def train_and_watch(cfg, episodes, examples, forward_actor, seed, draw, updates,
                     "replay_below_p_thresh": float((score < p_thresh).float().mean()),
                     "start_score": float(at_start.reshape(-1)[0])})
 
-    watch(0)
-    for step in range(1, updates + 1):
+    def next_batch():
         sample = replay.sample()
         sample.set("example", examples.sample(sample.shape[0]))
-        update(agent, sample, agent.loss, release_order=True)  # the recipe's update
-        if step % every == 0:
-            watch(step)
+        return sample
+
+    offline_updates(agent, next_batch, updates, every, watch, release_order=True)  # the recipe's update
     return out
 
 

@@ -31,9 +31,8 @@ from tensordict import TensorDict
 ROOT = Path(__file__).resolve().parents[3]
 from torchrl_reset_recipes.training.agents import make_reset_agent
 from torchrl_reset_recipes.training.run_spec import run_spec
-from torchrl_reset_recipes.analysis.saved_runs import load_replay, model_values, run_table
+from torchrl_reset_recipes.analysis.saved_runs import ensemble_minimum, load_replay, offline_updates, run_table
 from torchrl_reset_recipes.training.task_envs import task_dimensions
-from torchrl_reset_recipes.train import update
 
 
 def config(overrides):
@@ -72,21 +71,14 @@ def train_and_watch(forward, replay, seed, scale, updates, every, batch_size=256
     out = []
 
     def watch(step):
-        fq = model_values(agent.model, forward["observation"], forward["action"])
-        sq = model_values(agent.model, near["observation"], near["action"])
-        fmin, smin = fq.min(-1).values, sq.min(-1).values
         out.append({"seed": seed, "prior_scale": scale, "updates": step,
-                    "forward_min_mean": float(fmin.mean()), "forward_below_q_thresh": float((fmin < q_thresh).float().mean()),
-                    "forward_member_std": float(fq.std(-1).mean()),
-                    "near_success_min_mean": float(smin.mean()), "near_success_below_q_thresh": float((smin < q_thresh).float().mean())})
+                    **ensemble_minimum(agent.model, forward, near, q_thresh)})
 
-    watch(0)
-    for step in range(1, updates + 1):
+    def next_batch():
         sample = replay[torch.randint(replay.shape[0], (batch_size,), generator=generator)].clone()
-        sample = kind.prepare(sample, {}, None, run_spec(cfg, check=False))
-        update(agent, sample, agent.loss, release_order=True)  # the recipe's update
-        if step % every == 0:
-            watch(step)
+        return kind.prepare(sample, {}, None, run_spec(cfg, check=False))  # the sparse reward
+
+    offline_updates(agent, next_batch, updates, every, watch, release_order=True)  # the recipe's update
     return out
 
 

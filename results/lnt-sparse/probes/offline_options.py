@@ -27,8 +27,7 @@ import torch
 from omegaconf import OmegaConf
 from tensordict import TensorDict
 
-from torchrl_reset_recipes.analysis.saved_runs import load_replay, model_values, run_config
-from torchrl_reset_recipes.train import update
+from torchrl_reset_recipes.analysis.saved_runs import ensemble_minimum, load_replay, offline_updates, run_config
 from torchrl_reset_recipes.training.agents import make_reset_agent
 from torchrl_reset_recipes.training.run_spec import run_spec
 from torchrl_reset_recipes.training.task_envs import task_dimensions
@@ -94,23 +93,14 @@ def train_and_watch(run, forward, replay, option, settings, seed, updates, every
     out = []
 
     def watch(step):
-        fq = model_values(agent.model, forward["observation"], forward["action"])
-        sq = model_values(agent.model, near["observation"], near["action"])
-        fmin, smin = fq.min(-1).values, sq.min(-1).values
         out.append({"option": option, "seed": seed, "updates": step,
-                    "forward_min_mean": float(fmin.mean()),
-                    "forward_below_q_thresh": float((fmin < q_thresh).float().mean()),
-                    "forward_member_std": float(fq.std(-1).mean()),
-                    "near_success_min_mean": float(smin.mean()),
-                    "near_success_below_q_thresh": float((smin < q_thresh).float().mean())})
+                    **ensemble_minimum(agent.model, forward, near, q_thresh)})
 
-    watch(0)
-    for step in range(1, updates + 1):
+    def next_batch():
         sample = replay[draw_rows(replay, episodes, rows, generator)].clone()
-        sample = spec.kind.prepare(sample, {}, None, spec)  # the sparse reward; member k's batch at [k]
-        update(agent, sample, agent.loss, release_order=spec["update_order"] == "release")  # the recipe's update
-        if step % every == 0:
-            watch(step)
+        return spec.kind.prepare(sample, {}, None, spec)  # the sparse reward; member k's batch at [k]
+
+    offline_updates(agent, next_batch, updates, every, watch, release_order=spec["update_order"] == "release")
     return out
 
 
