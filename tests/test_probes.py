@@ -153,6 +153,12 @@ PROBE_RUNS: dict[str, ProbeRun] = {
         (r"^1\. the check against the task$", r"^   d_start between the start and the goal: 0\.927",
          r"^   one corner of the action box held: end inside the check", r"^3\. trigger states of the runs",
          r"seed0: \d+ triggers, \d+% already inside the check")),
+    "100000-tanh-normal-auto/probes/trigger_actions.py": ProbeRun(
+        lambda r, out: [r.cliff, "--last", "5"],  # the run's trigger set at 0.5 (algo.threshold)
+        (rf"at step_{STEPS:010d}: the last \d+ trigger states, p_thresh 0.5$",
+         r"^\| forward actor's \| [\d.]+ \| \d+% \|$", r"^\| reset actor's \| [\d.]+ \| \d+% \|$",
+         r"^forward actor at these states: \d+% beyond \+-0.9", r"^forward replay, \d+ rows",
+         r"^reset replay, \d+ rows: \d+% beyond")),
     "quick-ball-in-cup/probes/example_action.py": ProbeRun(
         lambda r, out: ["--seeds", "0", "--steps", "150", "--updates", "2", "--every", "1"],
         (r"^seed 0, from its checkpoint at 150 steps, 2 more reset updates$", r"^\| variant \| updates \| mean action",
