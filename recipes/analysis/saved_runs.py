@@ -23,7 +23,7 @@ from torchrl_reset_recipes.training.checkpoints import MANIFEST, CheckpointDamag
 from torchrl_reset_recipes.training.task_envs import task_dimensions
 
 __all__ = ["SavedRun", "load_agents", "load_replay", "latest_checkpoint", "run_config", "run_table", "model_values",
-           "ensemble_minimum", "offline_updates"]
+           "ensemble_minimum", "new_reset_agent", "offline_updates"]
 
 _ABSENT = object()
 
@@ -194,6 +194,14 @@ def ensemble_minimum(model, forward: TensorDict, near: TensorDict, q_thresh: flo
         if name == "forward":
             stats["forward_member_std"] = float(q.std(-1).mean())
     return stats
+
+
+def new_reset_agent(spec: RunSpec, seed: int) -> Agent:
+    """A reset agent as the recipe builds one for ``spec``'s run, its networks drawn afresh after
+    ``torch.manual_seed(seed)``: what the offline probes train on a run's saved rows."""
+    torch.manual_seed(seed)
+    obs_dim, action_spec = task_dimensions(spec.cfg)
+    return make_reset_agent(spec, obs_dim, action_spec)
 
 
 def offline_updates(agent: Agent, next_batch, updates: int, every: int, watch, *, release_order: bool = True) -> None:

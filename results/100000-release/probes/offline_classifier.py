@@ -29,13 +29,12 @@ import torch
 from hydra import compose, initialize_config_dir
 
 ROOT = Path(__file__).resolve().parents[3]
-from torchrl_reset_recipes.training.agents import make_reset_agent
 from torchrl_reset_recipes.training.run_spec import run_spec
 from torchrl_reset_recipes.training.buffers import make_buffers
 from torchrl_reset_recipes.training.learner import make_collector
-from torchrl_reset_recipes.training.agents import make_forward_agent
+from torchrl_reset_recipes.training.agents import make_forward_agent, make_reset_agent
 from torchrl_reset_recipes.training.task_envs import make_task_env, task_dimensions
-from torchrl_reset_recipes.analysis.saved_runs import offline_updates
+from torchrl_reset_recipes.analysis.saved_runs import new_reset_agent, offline_updates
 
 from torchrl_reset import DualCollector, success_probability  # noqa: E402
 
@@ -82,10 +81,9 @@ def at_initialisation(episodes, seeds, rows=2000, settings=()):
     for draw in ("fan_in", "xavier"):
         for seed in range(seeds):
             run_cfg = config([f"seed={seed}", f"algo.prior_bias_draw={draw}"], settings)
-            torch.manual_seed(seed)
-            obs_dim, action_spec = task_dimensions(run_cfg)
-            agent = make_reset_agent(run_spec(run_cfg, check=False), obs_dim, action_spec)
-            _, replay = make_buffers(run_spec(run_cfg, check=False))
+            spec = run_spec(run_cfg, check=False)
+            agent = new_reset_agent(spec, seed)
+            _, replay = make_buffers(spec)
             for episode in episodes:
                 replay.extend(episode.select(*REPLAY_KEYS, strict=False))
             sample = replay.sample(rows)
@@ -103,10 +101,9 @@ REPLAY_KEYS = ["observation", "action", ("next", "observation"), ("next", "done"
 
 def train_and_watch(cfg, episodes, examples, forward_actor, seed, draw, updates, every, targets, settings=()):
     run_cfg = config([f"seed={seed}", f"algo.prior_bias_draw={draw}", f"target_init={targets}"], settings)
-    torch.manual_seed(seed)
-    obs_dim, action_spec = task_dimensions(run_cfg)
-    agent = make_reset_agent(run_spec(run_cfg, check=False), obs_dim, action_spec)
-    _, replay = make_buffers(run_spec(run_cfg, check=False))
+    spec = run_spec(run_cfg, check=False)
+    agent = new_reset_agent(spec, seed)
+    _, replay = make_buffers(spec)
     for episode in episodes:
         replay.extend(episode.select(*REPLAY_KEYS, strict=False))
     rows = torch.cat([e.select("observation", "action") for e in episodes])

@@ -29,10 +29,8 @@ from hydra import compose, initialize_config_dir
 from tensordict import TensorDict
 
 ROOT = Path(__file__).resolve().parents[3]
-from torchrl_reset_recipes.training.agents import make_reset_agent
 from torchrl_reset_recipes.training.run_spec import run_spec
-from torchrl_reset_recipes.analysis.saved_runs import ensemble_minimum, load_replay, offline_updates, run_table
-from torchrl_reset_recipes.training.task_envs import task_dimensions
+from torchrl_reset_recipes.analysis.saved_runs import ensemble_minimum, load_replay, new_reset_agent, offline_updates, run_table
 
 
 def config(overrides):
@@ -61,11 +59,9 @@ def rows_at(checkpoint: Path, upto: int) -> tuple[TensorDict, TensorDict, int, i
 
 
 def train_and_watch(forward, replay, seed, scale, updates, every, batch_size=256):
-    cfg = config([f"seed={seed}", f"algo.prior_scale={scale}"])
-    torch.manual_seed(seed)
-    obs_dim, action_spec = task_dimensions(cfg)
-    agent = make_reset_agent(run_spec(cfg, check=False), obs_dim, action_spec)
-    kind, q_thresh = run_spec(cfg, check=False).kind, float(cfg.algo.threshold)
+    spec = run_spec(config([f"seed={seed}", f"algo.prior_scale={scale}"]), check=False)
+    agent = new_reset_agent(spec, seed)
+    q_thresh = spec.trigger_threshold  # LNT's Q_thresh (algo.threshold)
     near = replay[replay["next", "reset_success"].reshape(-1)]
     generator = torch.Generator().manual_seed(seed)
     out = []
@@ -76,7 +72,7 @@ def train_and_watch(forward, replay, seed, scale, updates, every, batch_size=256
 
     def next_batch():
         sample = replay[torch.randint(replay.shape[0], (batch_size,), generator=generator)].clone()
-        return kind.prepare(sample, {}, None, run_spec(cfg, check=False))  # the sparse reward
+        return spec.kind.prepare(sample, {}, None, spec)  # the sparse reward
 
     offline_updates(agent, next_batch, updates, every, watch, release_order=True)  # the recipe's update
     return out

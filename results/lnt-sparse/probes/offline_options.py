@@ -27,10 +27,8 @@ import torch
 from omegaconf import OmegaConf
 from tensordict import TensorDict
 
-from torchrl_reset_recipes.analysis.saved_runs import ensemble_minimum, load_replay, offline_updates, run_config
-from torchrl_reset_recipes.training.agents import make_reset_agent
+from torchrl_reset_recipes.analysis.saved_runs import ensemble_minimum, load_replay, new_reset_agent, offline_updates, run_config
 from torchrl_reset_recipes.training.run_spec import run_spec
-from torchrl_reset_recipes.training.task_envs import task_dimensions
 
 #: each option alone, then all four (what ``algo=lnt_sparse_release`` turns on)
 RELEASE = {"algo.independent_batches": True, "algo.member_actor_gradient": True, "algo.target_draws": True,
@@ -82,9 +80,7 @@ def draw_rows(replay: TensorDict, episodes: torch.Tensor | None, count: int, gen
 def train_and_watch(run, forward, replay, option, settings, seed, updates, every) -> list[dict]:
     spec = run_spec(config(run, seed, settings), check=False)
     cfg = spec.cfg
-    torch.manual_seed(seed)
-    obs_dim, action_spec = task_dimensions(cfg)
-    agent = make_reset_agent(spec, obs_dim, action_spec)
+    agent = new_reset_agent(spec, seed)
     q_thresh, members = spec.trigger_threshold, int(cfg.algo.num_members)
     rows = int(cfg.reset.batch_size) * (members if spec["algo.independent_batches"] else 1)
     episodes = episode_of_rows(replay) if spec["algo.sampling"] == "episode" else None
