@@ -159,6 +159,12 @@ PROBE_RUNS: dict[str, ProbeRun] = {
          r"^\| forward actor's \| [\d.]+ \| \d+% \|$", r"^\| reset actor's \| [\d.]+ \| \d+% \|$",
          r"^forward actor at these states: \d+% beyond \+-0.9", r"^forward replay, \d+ rows",
          r"^reset replay, \d+ rows: \d+% beyond")),
+    "screening-reset-actor/probes/reset_exploration.py": ProbeRun(
+        lambda r, out: [f"tiny={r.cliff.parent}", "--seeds", "0", "--checkpoint", f"step_{STEPS:010d}", "--last", "50",
+                        "--out", out],
+        (r"^configuration tiny, seed 0, spread [\d.e-]+, p_stored .* triggers \d+, forward_before_trigger",
+         r"^\| tiny \| 1 \| "),
+        wrote=_exists("reset_exploration.csv", "reset_exploration.md")),
     "quick-ball-in-cup/probes/example_action.py": ProbeRun(
         lambda r, out: ["--seeds", "0", "--steps", "150", "--updates", "2", "--every", "1"],
         (r"^seed 0, from its checkpoint at 150 steps, 2 more reset updates$", r"^\| variant \| updates \| mean action",
@@ -288,3 +294,15 @@ def test_load_replay_reads_a_checkpoints_replay_buffers(runs, tmp_path):
     for read in (latest_checkpoint, load_replay):
         with pytest.raises(FileNotFoundError, match="holds no complete checkpoint"):
             read(tmp_path)
+
+
+def test_reset_exploration_measures_the_forward_steps_before_each_trigger(tmp_path):
+    """A run of three forward episodes, worked out by hand: 100 forward steps ended by the horizon (no trigger),
+    a reset of 200 steps; 5 forward steps, then a trigger (logged at step 305) and a reset of 15 steps; a trigger
+    on the first forward action (step 320) and a reset of 200. Triggered episodes: 5 and 0 forward steps."""
+    probe = runpy.run_path(str(ROOT / "results" / "screening-reset-actor" / "probes" / "reset_exploration.py"))
+    (tmp_path / "config.yaml").write_text("task: {}\n")
+    (tmp_path / "resets.csv").write_text("frames,outcome,steps\n300,manual,200\n320,success,15\n520,manual,200\n")
+    (tmp_path / "triggers.csv").write_text("frames,steps,value\n305,0,0.05\n320,0,0.01\n")
+    assert probe["forward_lengths_before_triggers"](tmp_path, 10_000) == [5, 0]
+    assert probe["forward_lengths_before_triggers"](tmp_path, 400) == [5]  # the last reset ends after step 400
