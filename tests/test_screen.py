@@ -74,3 +74,26 @@ def test_the_table_counts_the_seeds_that_hold_and_shows_every_seed(tmp_path):
     screen.main(["table", str(tmp_path), "--out", str(tmp_path / "out")])
     assert (tmp_path / "out" / "screening.md").exists() and (tmp_path / "out" / "screening.png").exists()
     assert np.isclose(screen.bootstrap_interval([r["manual_resets"] for r in rows])[0], 20.0)
+
+
+def test_the_table_puts_folders_made_elsewhere_side_by_side(tmp_path):
+    """--config NAME=FOLDER: two results folders' runs as two configurations, in the order given, beside root's or
+    without one; a malformed pair, an --order naming no configuration, or nothing to read are refused."""
+    _run(tmp_path / "old" / "ours" / "seed0", 0, 300, 0.8, 0.25, 0.5)
+    _run(tmp_path / "new" / "ours" / "seed0", 0, 200, 0.9, 0.2, 0.0)
+    out = tmp_path / "out"
+    screen.main(["table", "--config", f"release={tmp_path / 'old' / 'ours'}",
+                 "--config", f"project={tmp_path / 'new' / 'ours'}", "--out", str(out)])
+    table = (out / "screening.md").read_text()
+    assert table.index("| release | 0 | 1000 | yes | 300 |") < table.index("| project | 0 | 1000 | yes | 200 |")
+    screen.main(["table", str(tmp_path / "old"), "--config", f"project={tmp_path / 'new' / 'ours'}",
+                 "--order", "project,ours", "--out", str(out)])
+    table = (out / "screening.md").read_text()
+    assert table.index("| project | 0 |") < table.index("| ours | 0 |")
+    for bad in (["table", "--config", "release", "--out", str(out)],  # no folder
+                ["table", "--config", f"release={tmp_path / 'old' / 'ours'}"],  # no --out and no root
+                ["table", "--config", f"a={tmp_path / 'old' / 'ours'}", "--order", "b", "--out", str(out)],
+                ["table"]):
+        with pytest.raises(SystemExit) as refused:
+            screen.main(bad)
+        assert refused.value.code == 2

@@ -5,6 +5,9 @@
     python recipes/analysis/screen.py run preact --seeds 0-9 -- preset=quick task=ball_in_cup_catch reset.actor.preact_penalty=0.001
     # the table (screening.md) and the strip plot (screening.png) of every configuration's runs
     python recipes/analysis/screen.py table runs/screening --out results/screening
+    # configurations from folders made elsewhere, side by side (each NAME=FOLDER holds seed<k>/ run folders)
+    python recipes/analysis/screen.py table --config release=results/100000-release/peg_insertion_insert/ours \
+        --config project=results/100000-tanh-normal-auto/peg_insertion_insert/ours --out <folder>
 
 ``run`` puts seed ``k`` of configuration ``NAME`` in ``<root>/NAME/seed<k>`` (``--root``, default
 ``runs/screening``) with ``resume=auto``: a grid stopped part-way is continued by the same command. ``table``
@@ -209,7 +212,10 @@ def main(argv=None) -> None:
     run.add_argument("--root", default="runs/screening", help="where the runs go (default runs/screening)")
     run.add_argument("overrides", nargs="*", help="the recipe's overrides (after --)")
     table = sub.add_parser("table", help="the table and figure of every configuration under a folder")
-    table.add_argument("root", type=Path, help="the folder holding <name>/seed<k>/ run folders")
+    table.add_argument("root", type=Path, nargs="?", default=None, help="the folder holding <name>/seed<k>/ run folders")
+    table.add_argument("--config", action="append", default=[], metavar="NAME=FOLDER",
+                       help="a configuration by its own folder of seed<k>/ run folders, instead of or beside root's "
+                            "(repeat it: folders of runs made elsewhere side by side, such as two results folders)")
     table.add_argument("--out", type=Path, default=None, help="where screening.md and screening.png go (default: root)")
     table.add_argument("--order", default=None, help="the configurations' order, comma-separated (default: by name)")
     argv = list(sys.argv[1:] if argv is None else argv)
@@ -222,10 +228,23 @@ def main(argv=None) -> None:
         command = grid_command(args.name, seed_list(args.seeds), args.overrides, args.root, args.jobs)
         print(" ".join(command), flush=True)
         sys.exit(subprocess.call(command))
-    names = args.order.split(",") if args.order else sorted(p.name for p in args.root.iterdir() if p.is_dir())
-    configurations = {name: rows for name in names if (rows := read_configuration(args.root / name))}
+    folders = {p.name: p for p in sorted(args.root.iterdir()) if p.is_dir()} if args.root else {}
+    for item in args.config:
+        name, _, folder = item.partition("=")
+        if not name or not folder:
+            parser.error(f"--config takes NAME=FOLDER, got {item!r}")
+        folders[name] = Path(folder)
+    if not folders:
+        parser.error("give a root folder or at least one --config NAME=FOLDER")
+    if args.out is None and args.root is None:
+        parser.error("--out is needed without a root folder")
+    names = args.order.split(",") if args.order else list(folders)
+    unknown = [name for name in names if name not in folders]
+    if unknown:
+        parser.error(f"--order names {unknown}, which are not among the configurations {list(folders)}")
+    configurations = {name: rows for name in names if (rows := read_configuration(folders[name]))}
     if not configurations:
-        raise SystemExit(f"no run folder with a summary.json under {args.root}/<name>/seed*/")
+        raise SystemExit(f"no run folder with a summary.json under {', '.join(map(str, folders.values()))} (seed*/)")
     out = args.out or args.root
     out.mkdir(parents=True, exist_ok=True)
     (out / "screening.md").write_text(screening_table(configurations))
