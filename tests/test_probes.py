@@ -149,10 +149,11 @@ PROBE_RUNS: dict[str, ProbeRun] = {
         (r"^  reset episodes, success: \d+, [\d,]+ steps$", r"^  triggers: \d+; within the first 2 forward steps: ",
          r"^  before a reset that ended in manual \(\d+\): \|pitch\| quartiles")),
     "lnt-sparse/probes/peg_check.py": ProbeRun(
-        lambda r, out: ["--episodes", "2", "--samples", "20", "--runs", r.peg],
+        lambda r, out: ["--episodes", "2", "--samples", "20", "--window", "100", "--runs", r.peg],
         (r"^1\. the check against the task$", r"^   d_start between the start and the goal: 0\.927",
          r"^   one corner of the action box held: end inside the check", r"^3\. trigger states of the runs",
-         r"seed0: \d+ triggers, \d+% already inside the check")),
+         r"seed0: \d+ triggers, \d+% already inside the check",
+         r"^     (0-100|100-200): \d+ triggers, \d+% inside the check, d_start median [\d.]+$")),
     "100000-tanh-normal-auto/probes/trigger_actions.py": ProbeRun(
         lambda r, out: [r.cliff, "--last", "5"],  # the run's trigger set at 0.5 (algo.threshold)
         (rf"at step_{STEPS:010d}: the last \d+ trigger states, p_thresh 0.5$",

@@ -12,10 +12,12 @@ it, the denser that "sparse" reward is. This probe measures, on the task's own m
    the share of their end states that pass the check (a reset from there is over after the 5 minimum steps)
    and how far they get;
 3. the trigger states of committed 100k runs (``--runs``, folders with ``triggers.csv``): the share already
-   inside the check.
+   inside the check, in all and (``--window``) stretch by stretch.
 
     python results/lnt-sparse/probes/peg_check.py --episodes 50 \\
         --runs results/100000-release/peg_insertion_insert/*/seed*
+    python results/lnt-sparse/probes/peg_check.py --episodes 2 --samples 20 --window 10000 \\
+        --runs results/100000-release/peg_insertion_insert/ours/seed0 results/100000-tanh-normal-auto/peg_insertion_insert/ours/seed0
 """
 from __future__ import annotations
 
@@ -68,6 +70,8 @@ def main(argv=None) -> None:
     parser.add_argument("--samples", type=int, default=20000, help="joint positions drawn for part 1 (default 20,000)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--runs", type=Path, nargs="*", default=[], help="run folders with triggers.csv (part 3)")
+    parser.add_argument("--window", type=int, default=None,
+                        help="part 3 also stretch by stretch: the triggers logged in each WINDOW steps")
     args = parser.parse_args(argv)
     rng = np.random.default_rng(args.seed)
     env = PegInsertionEnv("insert")
@@ -104,6 +108,13 @@ def main(argv=None) -> None:
         d = np.array([at_rest(env, s[:7]) for s in states])
         print(f"   {folder}: {len(d)} triggers, {np.mean(d < CHECK):.0%} already inside the check; "
               f"d_start median {np.median(d):.2f}")
+        if args.window:
+            frames = np.array([int(r["frames"]) for r in run_table(folder, "triggers.csv")])
+            stretch = (frames - 1).clip(min=0) // args.window  # a trigger logged at step t lies in (lo, lo + window]
+            for k in np.unique(stretch):
+                inside = d[stretch == k]
+                print(f"     {k * args.window}-{(k + 1) * args.window}: {inside.size} triggers, "
+                      f"{np.mean(inside < CHECK):.0%} inside the check, d_start median {np.median(inside):.2f}")
 
 
 if __name__ == "__main__":
