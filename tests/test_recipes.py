@@ -229,6 +229,7 @@ def test_a_crash_while_checkpointing_keeps_the_previous_checkpoint(tmp_path):
         (["speed.compile=[backward]"], "speed.compile must be a list of agents among forward, reset"),
         (["speed.matmul_precision=fp16"], "speed.matmul_precision must be one of auto, ieee, bf16"),
         (["speed.accelerate=fast"], "speed.accelerate must be true or false"),
+        (["reset.learn_from_forward=sometimes"], "reset.learn_from_forward must be true or false"),
         (["algo=ours", "+algo.reward_bounds=[0,1]"], "algo.reward_bounds clips LNT's TD targets"),
         (["algo=lnt", "algo.reward_bounds=[1,0]"], r"algo.reward_bounds must be \[low, high\] with low < high"),
         (["algo=lnt_sparse", "algo.reward_bounds=[0]"], r"algo.reward_bounds must be \[low, high\]"),
@@ -867,3 +868,37 @@ def test_the_summary_names_what_decides_the_float_rounding(tmp_path):
     # the product precision is the one this processor's check chose (auto: bf16 only where it measures as accurate)
     assert saved["torch_threads"] == 1 and saved["processor"]
     assert saved["matmul_precision"] == accel.choose_matmul_precision("auto")
+
+
+@pytest.mark.parametrize("learn_from_forward", [False, True])
+def test_learn_from_forward_puts_the_forward_steps_in_the_reset_buffer_too(tmp_path, learn_from_forward):
+    """reset.learn_from_forward: every forward step the forward buffer keeps is also a row of the reset agent's
+    buffer, its n-step state taken inside its own forward episode (the state n steps on, or the episode's last);
+    off (the paper's B_r) the reset buffer holds reset steps alone. 150 collected steps, stored as train.py
+    stores them, no update."""
+    cfg = config(tmp_path, "algo=ours", "task=cliff_cheetah", "total_steps=150", "algo.n_steps=3",
+                 f"reset.learn_from_forward={str(learn_from_forward).lower()}")
+    run = single_run.build_run(run_spec(cfg, check=False), "ieee")
+    try:
+        for batch in run.collector:
+            run.learner.store(batch, train.DualCollector.phase_of(batch))
+        forward = run.forward_rb.storage[:len(run.forward_rb)]
+        reset = run.reset_rb.storage[:len(run.reset_rb)]
+        forward_ids = set(forward["collector", "traj_ids"].tolist())
+        reset_ids = reset["collector", "traj_ids"].tolist()
+        assert len(forward_ids) >= 3  # several forward episodes in 150 steps (H_f = 20)
+        assert (forward_ids <= set(reset_ids)) is learn_from_forward
+        assert forward_ids.isdisjoint(reset_ids) is (not learn_from_forward)
+        if learn_from_forward:
+            ids = forward["collector", "traj_ids"]
+            rows = [i for i, t in enumerate(reset_ids) if t in forward_ids]
+            # in the same order; the n-step transform holds back at most n - 1 = 2 rows of an episode still going
+            assert len(forward) - 2 <= len(rows) <= len(forward)
+            assert torch.equal(reset[rows]["observation"], forward[:len(rows)]["observation"])
+            for i in range(len(rows)):  # s_{t+3}: the next state two rows on, in the same episode, or its last
+                same = (ids == ids[i]).nonzero().squeeze(-1)
+                j = min(i + 2, int(same.max()))
+                assert torch.equal(reset[rows[i]]["nstep", "observation"], forward[j]["next", "observation"])
+    finally:
+        run.collector.shutdown()
+        run.eval_env.close()

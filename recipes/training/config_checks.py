@@ -109,8 +109,9 @@ def validate(cfg: DictConfig) -> None:
         value = setting(cfg, key)
         if value not in choices:
             problems.append(f"{key} must be {' or '.join(choices)}, got {value!r}")
-    if not isinstance(setting(cfg, "exploration.clip"), bool):
-        problems.append(f"exploration.clip must be true or false, got {OmegaConf.select(cfg, 'exploration.clip')!r}")
+    for key in ("exploration.clip", "reset.learn_from_forward"):
+        if not isinstance(setting(cfg, key), bool):
+            problems.append(f"{key} must be true or false, got {OmegaConf.select(cfg, key)!r}")
     problems += actor_problems(cfg)
     if int(cfg.heat_up) < 0:
         problems.append(f"heat_up must be >= 0, got {cfg.heat_up}")

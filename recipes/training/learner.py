@@ -77,6 +77,8 @@ class Learner:
         self.heat_up = int(cfg.heat_up)
         #: ``update_order: release``: a critic step, then an actor step (else one joint step on both losses)
         self.release_order = spec["update_order"] == "release"
+        #: ``reset.learn_from_forward``: the forward steps go to the reset agent's buffer as well
+        self.learn_from_forward = bool(spec["reset.learn_from_forward"])
         compiled = set(spec["speed.compile"])
         self.losses = {name: torch.compile(agent.loss) if name in compiled else agent.loss
                        for name, agent in self.agents.items()}
@@ -88,8 +90,12 @@ class Learner:
 
     def store(self, batch, phase: str) -> None:
         """Lines 16 / 23: stores the step(s) in the phase's replay buffer, the entries its agent reads
-        (the buffers live on the CPU; the reset buffer's n-step transform runs here)."""
+        (the buffers live on the CPU; the reset buffer's n-step transform runs here). With
+        ``reset.learn_from_forward`` a forward step goes to the reset agent's buffer too (each forward episode
+        its own trajectory there, so its n-step states stay inside it)."""
         self.buffer(phase).extend(batch.select(*self.keys[phase], strict=False).cpu())
+        if phase == "forward" and self.learn_from_forward:
+            self.reset_rb.extend(batch.select(*self.keys["reset"], strict=False).cpu())
 
     def updating(self, phase: str) -> bool:
         """Whether agent ``phase`` updates at this step: past its heat-up (and, on a robot, in time)."""
