@@ -14,7 +14,9 @@ import torch
 from tensordict import TensorDict
 from omegaconf import DictConfig, OmegaConf
 from torchrl.data import ReplayBuffer
+from torchrl.envs.utils import ExplorationType, set_exploration_type
 
+from torchrl_reset import success_probability
 from torchrl_reset_recipes.train import update
 from torchrl_reset_recipes.training.agents import Agent, make_forward_agent, make_reset_agent
 from torchrl_reset_recipes.training.buffers import make_buffers
@@ -22,8 +24,9 @@ from torchrl_reset_recipes.training.run_spec import RunSpec, run_spec
 from torchrl_reset_recipes.training.checkpoints import MANIFEST, CheckpointDamaged, Checkpoints, checkpoint_problems, checkpoint_step, identity_differences
 from torchrl_reset_recipes.training.task_envs import task_dimensions
 
-__all__ = ["SavedRun", "load_agents", "load_replay", "latest_checkpoint", "run_config", "run_table", "model_values",
-           "ensemble_minimum", "new_reset_agent", "offline_updates"]
+__all__ = ["SavedRun", "load_agents", "load_replay", "latest_checkpoint", "run_config", "run_table", "logged_observations",
+           "greedy_actions", "model_values", "trigger_probability", "ensemble_minimum", "new_reset_agent",
+           "offline_updates"]
 
 _ABSENT = object()
 
@@ -165,6 +168,26 @@ def _check(checkpoint: Path, run_dir: Path, cfg: DictConfig) -> None:
     if differ:
         raise ValueError(f"{checkpoint} was saved by another run than {run_dir}: "
                          + ", ".join(f"{key} {saved!r} there, {value!r} here" for key, (saved, value) in differ.items()))
+
+
+def logged_observations(rows: list[dict[str, str]]) -> torch.Tensor:
+    """The ``observation`` column of logged rows (``triggers.csv``'s: the state each trigger stopped), one row
+    of float32 per logged row."""
+    return torch.tensor([[float(v) for v in r["observation"].split()] for r in rows], dtype=torch.float32)
+
+
+def greedy_actions(actor, observation: torch.Tensor) -> torch.Tensor:
+    """``actor``'s own actions on ``observation``, without exploration (a tanh-Gaussian's ``tanh(loc)``) and
+    without gradients."""
+    with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
+        return actor(TensorDict(observation=observation, batch_size=[len(observation)]))["action"]
+
+
+def trigger_probability(model, observation: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+    """What ours' trigger scores: the members' mean success ratio ``p`` of (observation, action), one value per
+    row (the trigger fires below p_thresh)."""
+    with torch.no_grad():
+        return success_probability(model.logits(observation, action)).mean(-1)
 
 
 def model_values(model, observation: torch.Tensor, action: torch.Tensor, key: str = "state_action_value",

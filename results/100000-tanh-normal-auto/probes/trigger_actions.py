@@ -19,28 +19,16 @@ import argparse
 from pathlib import Path
 
 import torch
-from tensordict import TensorDict
-from torchrl.envs.utils import ExplorationType, set_exploration_type
 
-from torchrl_reset import success_probability
-from torchrl_reset_recipes.analysis.saved_runs import load_agents, load_replay, run_table
+from torchrl_reset_recipes.analysis.saved_runs import (greedy_actions, load_agents, load_replay, logged_observations,
+                                                       run_table, trigger_probability)
 
 
 def trigger_states(run: Path, upto: int, last: int) -> torch.Tensor:
     rows = [r for r in run_table(run, "triggers.csv") if int(r["frames"]) <= upto][-last:]
     if not rows:
         raise SystemExit(f"{run} logged no trigger by step {upto}")
-    return torch.tensor([[float(v) for v in r["observation"].split()] for r in rows], dtype=torch.float32)
-
-
-def act(actor, states: torch.Tensor) -> torch.Tensor:
-    with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
-        return actor(TensorDict(observation=states, batch_size=[len(states)]))["action"]
-
-
-def mean_p(model, states: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
-    with torch.no_grad():
-        return success_probability(model.logits(states, actions)).mean(-1)
+    return logged_observations(rows)
 
 
 def out_in_the_box(actions: torch.Tensor) -> str:
@@ -60,13 +48,13 @@ def main(argv=None):
         raise SystemExit(f"{args.run} is a run of {saved.spec.kind.name}: this probe reads ours' classifiers")
     p_thresh, model = saved.spec.trigger_threshold, saved.reset.model
     states = trigger_states(args.run, saved.step, args.last)
-    forward_action, reset_action = act(saved.forward.actor, states), act(saved.reset.actor, states)
+    forward_action, reset_action = greedy_actions(saved.forward.actor, states), greedy_actions(saved.reset.actor, states)
     print(f"{args.run} at {saved.checkpoint.name}: the last {len(states)} trigger states, p_thresh {p_thresh}")
     print("| action scored | median p | below p_thresh |")
     print("|---|---|---|")
     for name, action in (("forward actor's", forward_action), ("reset actor's", reset_action),
                          ("zero", torch.zeros_like(forward_action)), ("forward actor's, halved", forward_action / 2)):
-        p = mean_p(model, states, action)
+        p = trigger_probability(model, states, action)
         print(f"| {name} | {float(p.median()):.3f} | {float((p < p_thresh).float().mean()):.0%} |")
     print(f"forward actor at these states: {out_in_the_box(forward_action)}")
     print(f"reset actor at these states: {out_in_the_box(reset_action)}")

@@ -26,7 +26,7 @@ from tensordict import TensorDict
 ROOT = Path(__file__).resolve().parents[3]
 
 from torchrl_reset_recipes.training.checkpoints import checkpoint_step
-from torchrl_reset_recipes.analysis.saved_runs import load_agents, run_config, run_table
+from torchrl_reset_recipes.analysis.saved_runs import load_agents, logged_observations, run_config, run_table
 
 
 def fixed_states(run: Path, count: int) -> torch.Tensor:
@@ -35,7 +35,7 @@ def fixed_states(run: Path, count: int) -> torch.Tensor:
     if not rows:
         raise SystemExit(f"{run} has no trigger states (triggers.csv is empty or absent)")
     picks = range(len(rows)) if count >= len(rows) else [i * len(rows) // count for i in range(count)]
-    return torch.tensor([[float(v) for v in rows[i]["observation"].split()] for i in picks], dtype=torch.float32)
+    return logged_observations([rows[i] for i in picks])
 
 
 def success_by_stretch(run: Path, steps: list[int], first: int) -> list[tuple[int, int]]:

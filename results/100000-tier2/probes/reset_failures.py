@@ -34,7 +34,7 @@ from torchrl_reset_envs import make_gym_env
 ROOT = Path(__file__).resolve().parents[3]
 
 from torchrl_reset_recipes.training.run_spec import reset_horizon
-from torchrl_reset_recipes.analysis.saved_runs import load_agents, run_config, run_table
+from torchrl_reset_recipes.analysis.saved_runs import load_agents, logged_observations, run_config, run_table
 from torchrl_reset_recipes.analysis.stretches import resets_by_start
 
 
@@ -94,7 +94,7 @@ def main(argv=None) -> None:
     print(f"{args.run}: checkpoint {latest.name}; {len(chosen)} trigger states from frames "
           f"{chosen[0]['frames']} to {chosen[-1]['frames']}; reset horizon {reset_horizon(cfg)}, "
           f"minimum {int(cfg.reset.min_steps)} steps")
-    states = torch.tensor([[float(v) for v in t["observation"].split()] for t in chosen], dtype=torch.float32)
+    states = logged_observations(chosen)
     with torch.no_grad():
         out = actor(TensorDict(observation=states, batch_size=[len(states)]))
     pre, act = out["action_preactivation"], out["action"]

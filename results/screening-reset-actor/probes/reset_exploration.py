@@ -34,25 +34,13 @@ import statistics
 from pathlib import Path
 
 import torch
-from tensordict import TensorDict
-from torchrl.envs.utils import ExplorationType, set_exploration_type
 
-from torchrl_reset import success_probability
-from torchrl_reset_recipes.analysis.saved_runs import load_agents, load_replay, run_table
+from torchrl_reset_recipes.analysis.saved_runs import (greedy_actions, load_agents, load_replay, logged_observations,
+                                                       run_table, trigger_probability)
 from torchrl_reset_recipes.analysis.screen import bootstrap_interval, seed_list
 
 COLUMNS = ("spread", "p_stored", "p_mu_r", "p_uniform", "below_uniform", "trigger_p_forward",
            "trigger_below_forward", "triggers", "forward_before_trigger")
-
-
-def act(actor, states: torch.Tensor) -> torch.Tensor:
-    with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
-        return actor(TensorDict(observation=states, batch_size=[len(states)]))["action"]
-
-
-def mean_p(model, states: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
-    with torch.no_grad():
-        return success_probability(model.logits(states, actions)).mean(-1)
 
 
 def forward_lengths_before_triggers(run: Path, upto: int) -> list[int]:
@@ -81,18 +69,18 @@ def probe_run(run: Path, checkpoint: str, last: int) -> dict[str, float]:
     rows = min(rb.write_count, rb.storage.max_size)
     recent = rb.storage[max(0, rows - last):rows]
     states, stored = recent["observation"], recent["action"]
-    mu_r = act(saved.reset.actor, states)
+    mu_r = greedy_actions(saved.reset.actor, states)
     uniform = torch.rand(stored.shape, generator=torch.Generator().manual_seed(0)) * 2 - 1
-    p_uniform = mean_p(model, states, uniform)
+    p_uniform = trigger_probability(model, states, uniform)
     trigger_rows = [r for r in run_table(run, "triggers.csv") if int(r["frames"]) <= saved.step][-200:]
     out = {"spread": float((stored - mu_r).abs().mean()),
-           "p_stored": float(mean_p(model, states, stored).median()),
-           "p_mu_r": float(mean_p(model, states, mu_r).median()),
+           "p_stored": float(trigger_probability(model, states, stored).median()),
+           "p_mu_r": float(trigger_probability(model, states, mu_r).median()),
            "p_uniform": float(p_uniform.median()),
            "below_uniform": float((p_uniform < p_thresh).float().mean())}
     if trigger_rows:
-        trigger_states = torch.tensor([[float(v) for v in r["observation"].split()] for r in trigger_rows])
-        p_forward = mean_p(model, trigger_states, act(saved.forward.actor, trigger_states))
+        trigger_states = logged_observations(trigger_rows)
+        p_forward = trigger_probability(model, trigger_states, greedy_actions(saved.forward.actor, trigger_states))
         out["trigger_p_forward"] = float(p_forward.median())
         out["trigger_below_forward"] = float((p_forward < p_thresh).float().mean())
     else:
