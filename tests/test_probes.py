@@ -307,3 +307,28 @@ def test_reset_exploration_measures_the_forward_steps_before_each_trigger(tmp_pa
     (tmp_path / "triggers.csv").write_text("frames,steps,value\n305,0,0.05\n320,0,0.01\n")
     assert probe["forward_lengths_before_triggers"](tmp_path, 10_000) == [5, 0]
     assert probe["forward_lengths_before_triggers"](tmp_path, 400) == [5]  # the last reset ends after step 400
+
+
+def test_the_scoring_helpers_read_logged_states_act_greedily_and_score_as_ours_trigger():
+    """logged_observations parses triggers.csv's column; greedy_actions takes a tanh-Gaussian's tanh(loc), not a
+    sample; trigger_probability is the members' mean of p = exp(min(logit, 0)) (C clipped at 0.5), worked out by
+    hand: logits (0, ln 0.25) -> (1 + 0.25) / 2 = 0.625, logits (2, ln 0.5) -> (1 + 0.5) / 2 = 0.75."""
+    import math
+
+    import torch
+    from tensordict.nn import TensorDictModule
+    from torchrl.modules import ProbabilisticActor, TanhNormal
+
+    from torchrl_reset_recipes.analysis.saved_runs import greedy_actions, logged_observations, trigger_probability
+
+    states = logged_observations([{"observation": "1 -2.5"}, {"observation": "0.25 4"}])
+    assert states.dtype == torch.float32 and states.tolist() == [[1.0, -2.5], [0.25, 4.0]]
+    net = TensorDictModule(lambda obs: (obs / 4, torch.ones_like(obs)), ["observation"], ["loc", "scale"])
+    actor = ProbabilisticActor(net, in_keys=["loc", "scale"], distribution_class=TanhNormal, return_log_prob=False)
+    assert torch.allclose(greedy_actions(actor, states), torch.tanh(states / 4))
+
+    class Logits:
+        def logits(self, observation, action):
+            return torch.tensor([[0.0, math.log(0.25)], [2.0, math.log(0.5)]])
+
+    assert torch.allclose(trigger_probability(Logits(), states, states), torch.tensor([0.625, 0.75]))
