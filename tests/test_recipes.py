@@ -802,7 +802,7 @@ def _chain_record(tmp_path, *, ditch, trigger_cell, horizon, frames, reset_direc
     trigger = ResetTriggerTransform(TensorDictModule(logits, ["observation"], ["state_action_logit"]), 0.1)
     env = TransformedEnv(ChainEnv(num_states=8, ditch=ditch), trigger)
     collector = DualCollector(env, policy(1.0), policy(reset_direction), max_forward_steps=horizon, max_reset_steps=horizon,
-                              min_reset_steps=1, total_frames=frames, event_keys=["irrecoverable"])
+                              min_reset_steps=1, total_frames=frames, event_keys=["irrecoverable", "reset_success"])
     cfg = config(tmp_path, "task.curriculum.index=0", "heat_up=1000")
     tmp_path.mkdir(parents=True)
     record = RunRecord(run_spec(cfg, check=False), tmp_path, collector, trigger)
@@ -855,6 +855,20 @@ def test_the_records_count_entries_into_the_ditch_by_phase_and_say_which_trigger
     assert [t["irrecoverable"] for t in rows(tmp_path / "e" / "triggers.csv")] == ["0", "0"]
     resets = rows(tmp_path / "e" / "resets.csv")
     assert [(r["outcome"], r["started_by"], r["irrecoverable"]) for r in resets] == [("manual", "triggered", "1")] * 2
+
+
+def test_the_records_say_which_triggers_stopped_the_forward_agent_at_the_start(tmp_path):
+    """The chain's at-initial-state check is x == 0. A trigger that fires everywhere stops the first forward action
+    at cell 0 (a state that already counts as the start); the reset after it takes its one minimum step left
+    (staying at 0) and succeeds: 1 step a cycle, so 4 steps give 4 such triggers. A trigger firing from cell 3
+    stops the forward agent three cells out: not at the start (6 steps a cycle, 2 in 12 steps)."""
+    record = _chain_record(tmp_path / "a", ditch=8, trigger_cell=0, horizon=6, frames=4)
+    triggers = rows(tmp_path / "a" / "triggers.csv")
+    assert [(t["steps"], t["at_initial_state"]) for t in triggers] == [("0", "1")] * 4
+    assert record.history["triggers_at_initial_state"] == 4
+    record = _chain_record(tmp_path / "b", ditch=8, trigger_cell=3, horizon=6, frames=12)
+    assert [t["at_initial_state"] for t in rows(tmp_path / "b" / "triggers.csv")] == ["0", "0"]
+    assert record.history["triggers_at_initial_state"] == 0
 
 
 def test_the_summary_names_what_decides_the_float_rounding(tmp_path):

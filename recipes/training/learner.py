@@ -40,9 +40,10 @@ def make_collector(spec: RunSpec, env, forward: Agent, reset: Agent) -> DualColl
 
 
 def event_keys(env) -> list[str]:
-    """What each episode record copies beside the observation: the env's latched ``irrecoverable`` flag, where it
-    has one (the records say whether a triggered state, or the state a reset episode ended in, was already lost)."""
-    return [key for key in ("irrecoverable",) if key in env.full_observation_spec.keys(True, True)]
+    """What each episode record copies beside the observation, where the env has it: its latched ``irrecoverable``
+    flag (the records say whether a triggered state, or the state a reset episode ended in, was already lost)
+    and its at-initial-state check ``reset_success`` (whether a triggered state already counted as the start)."""
+    return [key for key in ("irrecoverable", "reset_success") if key in env.full_observation_spec.keys(True, True)]
 
 
 def restart_option(spec: RunSpec) -> dict:

@@ -40,9 +40,11 @@ PROGRESS_FIELDS = [
     # the policies' saturation over the log window: the share of their noiseless action components beyond 0.99 of
     # the bound (normalised coordinates) on the steps they took, and the mean |pre-activation| (the tanh's input)
     "forward_saturation", "forward_preact_abs", "reset_saturation", "reset_preact_abs",
+    # triggered resets whose stopped state already passed the env's at-initial-state check (so far)
+    "triggers_at_initial_state",
 ]
 EVAL_FIELDS = ["frames", "forward_return", "forward_steps", "triggered", "reset_success", "reset_steps"]
-TRIGGER_FIELDS = ["frames", "steps", "value", "irrecoverable", "observation"]
+TRIGGER_FIELDS = ["frames", "steps", "value", "irrecoverable", "at_initial_state", "observation"]
 # the steps of each phase are timed once both agents made this many updates: the first ones include
 # one-off costs (with speed.compile, the compile pause and a recompile of the forward loss)
 WARM_UP_UPDATES = 10
@@ -123,6 +125,8 @@ class RunRecord:
         # this log window's counts: saved with the checkpoint, so a window that a stop cuts in two is whole
         self.window = self.history.setdefault("saturation_window", Saturation.empty())
         self.history.setdefault("last_forward_end", "")
+        # triggers that stopped the forward agent at a state the env's at-initial-state check already passed
+        self.history.setdefault("triggers_at_initial_state", 0)
         self.bar = tqdm(total=int(self.cfg.total_steps), initial=self.collector.frames,
                         desc=f"{self.cfg.task.name}/{self.cfg.algo.name}", unit="step", mininterval=2.0,
                         disable=not self.cfg.progress_bar, dynamic_ncols=True)
@@ -164,9 +168,12 @@ class RunRecord:
                                     "irrecoverable": flag})
             if event["outcome"] == "triggered":
                 obs = event["state"]["observation"].flatten().tolist()
+                at_start = event["state"].get("reset_success", None)
+                at_start = int(at_start) if at_start is not None else ""
+                self.history["triggers_at_initial_state"] += at_start or 0
                 self.triggers.append({"frames": event["frame"], "steps": event["steps"],
                                       "value": obs[self.curriculum_index], "irrecoverable": flag,
-                                      "observation": " ".join(f"{v:.5g}" for v in obs)})
+                                      "at_initial_state": at_start, "observation": " ".join(f"{v:.5g}" for v in obs)})
 
     def evaluation(self, result: dict) -> None:
         self.history["eval_returns"].append(result["forward_return"])
@@ -185,7 +192,7 @@ class RunRecord:
             "steps_per_second": frames / max(self.history["elapsed"], 1e-9), "skipped_updates": learner.budget.skipped,
             **self.history["last_losses"], "protective_stops": safety_counters(env).get("protective_stops", 0),
             "irrecoverable_forward": self.irrecoverable["forward"], "irrecoverable_reset": self.irrecoverable["reset"],
-            **Saturation.fields(self.window),
+            **Saturation.fields(self.window), "triggers_at_initial_state": self.history["triggers_at_initial_state"],
         }
         self.last_window = Saturation.fields(self.window)
         self.window = self.history["saturation_window"] = Saturation.empty()
@@ -234,6 +241,9 @@ class RunRecord:
             "final_eval_return": returns[-1] if returns else None,
             "evaluations": len(returns),
             **{k: c[k] for k in ("triggered_resets", "requested_resets", "successful_resets", "reset_episodes")},
+            # of the triggered resets, those that stopped the forward agent at a state that already passed the
+            # env's at-initial-state check (the reset episode after one succeeds once its minimum steps are done)
+            "triggers_at_initial_state": history["triggers_at_initial_state"],
             "skipped_updates": learner.budget.skipped,
             "overruns": getattr(robot, "overruns", 0),
             "protective_stops": safety_counters(env).get("protective_stops", 0),
