@@ -166,6 +166,12 @@ PROBE_RUNS: dict[str, ProbeRun] = {
         (r"^configuration tiny, seed 0, spread [\d.e-]+, p_stored .* triggers \d+, forward_before_trigger",
          r"^\| tiny \| 1 \| "),
         wrote=_exists("reset_exploration.csv", "reset_exploration.md")),
+    "peg-early-triggers/probes/measure.py": ProbeRun(
+        lambda r, out: [f"tiny={r.peg.parent}", "absent=" + str(out / "none"), "--seeds", "0", "--start", "0",
+                        "--end", str(STEPS)],
+        # the kinematic check and the env's own flag logged with each trigger must agree on every trigger state
+        (r"^\| tiny \| 0 \| \d+ \| \d+% \(env's flag agrees on 100%\) \| \d+ \| \d+% \| \d+ \| [\d.]+ \|$",
+         r"^\| absent \| 0 \| not started \|", r"^\| tiny \| 1 \| \d+% \| ")),
     "quick-ball-in-cup/probes/example_action.py": ProbeRun(
         lambda r, out: ["--seeds", "0", "--steps", "150", "--updates", "2", "--every", "1"],
         (r"^seed 0, from its checkpoint at 150 steps, 2 more reset updates$", r"^\| variant \| updates \| mean action",

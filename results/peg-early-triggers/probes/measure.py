@@ -1,0 +1,112 @@
+"""The protocol's measurements for each run (README: Runs), seed by seed, configurations side by side.
+
+    python results/peg-early-triggers/probes/measure.py \\
+        project_actor=runs/100k-tanh_normal_auto/peg_insertion_insert/ours \\
+        release_actor=runs/peg-early-triggers/release_actor/peg_insertion_insert/ours \\
+        learn_from_forward=runs/peg-early-triggers/learn_from_forward/peg_insertion_insert/ours --seeds 0-2
+
+Each ``NAME=FOLDER`` holds ``seed<k>/`` run folders of peg insertion (insert). For the stretch ``--start`` to
+``--end`` (default 30,000-50,000 steps) and each run: its triggers, and how many of them stopped the forward
+agent at a state inside the task's at-initial-state check (``d_start < 0.2``, from the arm's joint positions in
+``triggers.csv`` on the task's model, as ``../../lnt-sparse/probes/peg_check.py`` works it out; where the run
+logged the env's own flag, ``at_initial_state``, the two are compared); the reset episodes that ended in the
+stretch and the share that succeeded; and at ``--end`` (the last ``progress.csv`` row at or before it) the
+manual resets and the forward share. A run that has not reached ``--end`` is listed as running. Per
+configuration, the mean of the finished runs with its bootstrap 95% interval (three or more).
+"""
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import mujoco
+import numpy as np
+
+from torchrl_reset_envs import PegInsertionEnv
+from torchrl_reset_recipes.analysis.saved_runs import run_config, run_table
+from torchrl_reset_recipes.analysis.screen import bootstrap_interval, seed_list
+
+CHECK = 0.2  # insert task: at the initial state when d_start < 0.2
+
+
+def d_start(env: PegInsertionEnv, qpos) -> float:
+    """The peg's distance from its start (the check's quantity) with the arm at joint positions ``qpos``."""
+    env.data.qpos[env._qadr] = qpos
+    env.data.qvel[:] = 0.0
+    mujoco.mj_forward(env.model, env.data)
+    return env.d_start()
+
+
+def measure(env: PegInsertionEnv, run: Path, start: int, end: int) -> dict:
+    cfg = run_config(run)
+    if cfg.task.name != "peg_insertion_insert":
+        raise SystemExit(f"{run} is a run of {cfg.task.name}: the check measured here is peg insertion (insert)'s")
+    progress = [r for r in run_table(run, "progress.csv") if int(r["frames"]) <= end]
+    row = {"run": str(run), "reached": int(progress[-1]["frames"]) if progress else 0}
+    if row["reached"] < end:
+        return row
+    triggers = [t for t in run_table(run, "triggers.csv") if start < int(t["frames"]) <= end]
+    inside = [d_start(env, np.array(t["observation"].split(), dtype=float)[:7]) < CHECK for t in triggers]
+    logged = [t.get("at_initial_state", "") for t in triggers]
+    resets = [r for r in run_table(run, "resets.csv") if start < int(r["frames"]) <= end]
+    row.update(triggers=len(triggers), inside=float(np.mean(inside)) if inside else float("nan"),
+               env_flag_agrees=(None if "" in logged or not logged else
+                                sum(int(f) == i for f, i in zip(logged, inside)) / len(logged)),
+               reset_episodes=len(resets),
+               reset_success=float(np.mean([r["outcome"] == "success" for r in resets])) if resets else float("nan"),
+               manual_resets=int(progress[-1]["manual_resets"]), forward_share=float(progress[-1]["forward_share"]))
+    return row
+
+
+def _cell(values, share: bool) -> str:
+    mean, low, high = bootstrap_interval(values)
+    show = (lambda v: f"{100 * v:.0f}%") if share else (lambda v: f"{v:.0f}")
+    if mean != mean:
+        return "n/a"
+    return show(mean) + ("" if low != low else f" [{show(low)}, {show(high)}]")
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("configurations", nargs="+", help="NAME=FOLDER, FOLDER holding seed<k>/ run folders")
+    parser.add_argument("--seeds", default="0-2")
+    parser.add_argument("--start", type=int, default=30000)
+    parser.add_argument("--end", type=int, default=50000)
+    args = parser.parse_args(argv)
+    if not 0 <= args.start < args.end:
+        parser.error("the stretch needs 0 <= --start < --end")
+    env = PegInsertionEnv("insert")
+    env.reset(seed=0)
+    stretch = f"{args.start // 1000}-{args.end // 1000}k"
+    print(f"| configuration | seed | triggers {stretch} | inside the check | reset episodes {stretch} | reset success "
+          f"{stretch} | manual resets at {args.end // 1000}k | forward share |")
+    print("|---|---|---|---|---|---|---|---|")
+    finished = {}
+    for item in args.configurations:
+        name, _, folder = item.partition("=")
+        if not folder:
+            parser.error(f"configurations are NAME=FOLDER, got {item!r}")
+        for seed in seed_list(args.seeds):
+            run = Path(folder) / f"seed{seed}"
+            if not (run / "config.yaml").exists():
+                print(f"| {name} | {seed} | not started | | | | | |")
+                continue
+            r = measure(env, run, args.start, args.end)
+            if "triggers" not in r:
+                print(f"| {name} | {seed} | running (at {r['reached']}) | | | | | |")
+                continue
+            finished.setdefault(name, []).append(r)
+            agrees = "" if r["env_flag_agrees"] is None else f" (env's flag agrees on {100 * r['env_flag_agrees']:.0f}%)"
+            print(f"| {name} | {seed} | {r['triggers']} | {100 * r['inside']:.0f}%{agrees} | {r['reset_episodes']} | "
+                  f"{100 * r['reset_success']:.0f}% | {r['manual_resets']} | {r['forward_share']:.2f} |")
+    print()
+    print("| configuration | runs | inside the check | reset success | manual resets | forward share |")
+    print("|---|---|---|---|---|---|")
+    for name, rows in finished.items():
+        print(f"| {name} | {len(rows)} | {_cell([r['inside'] for r in rows], True)} | "
+              f"{_cell([r['reset_success'] for r in rows], True)} | {_cell([r['manual_resets'] for r in rows], False)} | "
+              f"{_cell([r['forward_share'] for r in rows], True)} |")
+
+
+if __name__ == "__main__":
+    main()
