@@ -125,7 +125,8 @@ class RunRecord:
         # this log window's counts: saved with the checkpoint, so a window that a stop cuts in two is whole
         self.window = self.history.setdefault("saturation_window", Saturation.empty())
         self.history.setdefault("last_forward_end", "")
-        # triggers that stopped the forward agent at a state the env's at-initial-state check already passed
+        # triggers that stopped the forward agent at a state the env's at-initial-state check already passed (a run
+        # resumed from a checkpoint written before this count existed counts from its resume)
         self.history.setdefault("triggers_at_initial_state", 0)
         self.bar = tqdm(total=int(self.cfg.total_steps), initial=self.collector.frames,
                         desc=f"{self.cfg.task.name}/{self.cfg.algo.name}", unit="step", mininterval=2.0,
