@@ -100,3 +100,16 @@ def test_a_trigger_on_the_runs_first_action_falls_in_the_first_stretch(tmp_path)
     first, second = stretches.stretches(run, window=1000)
     # x positions 2, 1, 3, 5 -> median 2.5; the second stretch as before
     assert (first["triggers"], first["trigger position (median)"], second["triggers"]) == (4, "2.5", 1)
+
+
+def test_a_run_that_logged_the_check_says_how_many_triggers_fired_at_the_start(tmp_path):
+    """triggers.csv's at_initial_state (written since the column existed): 0-1k holds the triggers at 120 (at the
+    start), 600 (not) and 900 (at the start): 2; 1k-2k the one at 1900 (not): 0. A run logged before the column
+    existed (the other tests' folders) has no such column in its table."""
+    run = cliff_run(tmp_path / "run", task="peg_insertion_insert")
+    write(run / "triggers.csv", ["frames", "steps", "value", "irrecoverable", "at_initial_state", "observation"], [
+        [120, 40, 1.0, "", 1, ""], [600, 80, 3.0, "", 0, ""], [900, 90, 5.0, "", 1, ""], [1900, 200, 4.0, "", 0, ""],
+    ])
+    table = stretches.stretches(run, window=1000)
+    assert [(row["triggers"], row["at the start"]) for row in table] == [(3, 2), (1, 0)]
+    assert list(table[0])[:3] == ["steps", "triggers", "at the start"]

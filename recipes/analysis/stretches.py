@@ -6,7 +6,9 @@
 For each run folder and each ``--window``-step stretch (forward and reset steps together) a markdown
 table row, read from the run's ``progress.csv``, ``resets.csv`` and ``triggers.csv``:
 
-- triggers: triggered resets in the stretch; on a task with irrecoverable states (the cliff tasks, run
+- triggers: triggered resets in the stretch; where the run logged it (``triggers.csv``'s ``at_initial_state``),
+  how many stopped the forward agent at a state that already passed the env's at-initial-state check; on a
+  task with irrecoverable states (the cliff tasks, run
   with the code that logs them) also how many came too late (the state before the trigger was already lost), and
   the median of the curriculum entry just before the triggers (Fig. 5's state: the x position on the
   cliff tasks);
@@ -107,6 +109,7 @@ def stretches(run: Path, window: int, upto: int | None = None) -> list[dict]:
         raise FileNotFoundError(f"{run} has no progress.csv rows: not a run folder, or nothing logged yet")
     resets, triggers = csv_rows(run / "resets.csv"), csv_rows(run / "triggers.csv")
     cliff = has_irrecoverable_states(run) and "irrecoverable_forward" in progress[0]
+    at_start = bool(triggers) and triggers[0].get("at_initial_state") not in (None, "")  # logged since it existed
     last = int(progress[-1]["frames"])
     end_of_run = last if upto is None else min(upto, last)
     out = []
@@ -120,6 +123,8 @@ def stretches(run: Path, window: int, upto: int | None = None) -> list[dict]:
         ended = [r for r in resets if within(int(r["frames"]), start, end)]
         success = sum(r["outcome"] == "success" for r in ended)
         row = {"steps": f"{_k(start)}-{_k(end)}", "triggers": len(fired)}
+        if at_start:
+            row["at the start"] = sum(t.get("at_initial_state") == "1" for t in fired)
         if cliff:
             row["too late"] = sum(t.get("irrecoverable") == "1" for t in fired)
             values = [float(t["value"]) for t in fired if t.get("value") not in (None, "")]
