@@ -168,10 +168,11 @@ PROBE_RUNS: dict[str, ProbeRun] = {
         wrote=_exists("reset_exploration.csv", "reset_exploration.md")),
     "peg-early-triggers/probes/measure.py": ProbeRun(
         lambda r, out: [f"tiny={r.peg.parent}", "absent=" + str(out / "none"), "--seeds", "0", "--start", "0",
-                        "--end", str(STEPS)],
+                        "--end", str(STEPS), "--figure", out / "stretches.png", "--window", "100"],
         # the kinematic check and the env's own flag logged with each trigger must agree on every trigger state
         (r"^\| tiny \| 0 \| \d+ \| \d+% \(env's flag agrees on 100%\) \| \d+ \| \d+% \| \d+ \| [\d.]+ \|$",
-         r"^\| absent \| 0 \| not started \|", r"^\| tiny \| 1 \| \d+% \| ")),
+         r"^\| absent \| 0 \| not started \|", r"^\| tiny \| 1 \| \d+% \| ", r"stretches\.png$"),
+        wrote=_exists("stretches.png")),
     "quick-ball-in-cup/probes/example_action.py": ProbeRun(
         lambda r, out: ["--seeds", "0", "--steps", "150", "--updates", "2", "--every", "1"],
         (r"^seed 0, from its checkpoint at 150 steps, 2 more reset updates$", r"^\| variant \| updates \| mean action",
@@ -338,3 +339,29 @@ def test_the_scoring_helpers_read_logged_states_act_greedily_and_score_as_ours_t
             return torch.tensor([[0.0, math.log(0.25)], [2.0, math.log(0.5)]])
 
     assert torch.allclose(trigger_probability(Logits(), states, states), torch.tensor([0.625, 0.75]))
+
+
+def test_measure_counts_the_triggers_at_the_start_stretch_by_stretch(tmp_path):
+    """A run folder written by hand on peg insertion (insert): triggers at 50 and 150 with the arm at its reset
+    pose (d_start near 0: inside the check) and at 160 with its first joint turned 1 rad (far outside); resets ending
+    at 60, 170 and 180. Stretches of 100 steps: (0, 100] one trigger, inside, one reset; (100, 200] two, one
+    inside, two resets."""
+    from torchrl_reset_envs import PegInsertionEnv
+
+    probe = runpy.run_path(str(ROOT / "results" / "peg-early-triggers" / "probes" / "measure.py"))
+    env = PegInsertionEnv("insert")
+    start = env.reset(seed=0)[0][:7]
+    far = start.copy()
+    far[0] += 1.0
+    assert probe["d_start"](env, start) < 0.01 and probe["d_start"](env, far) > 0.2  # the reset pose: near the start
+    (tmp_path / "config.yaml").write_text("task:\n  name: peg_insertion_insert\n")
+    (tmp_path / "progress.csv").write_text("frames,manual_resets,forward_share\n100,1,0.5\n200,2,0.4\n")
+    pose = lambda q: " ".join(f"{v:.6g}" for v in q)  # noqa: E731
+    (tmp_path / "triggers.csv").write_text(f"frames,steps,value,irrecoverable,observation\n50,3,0,,{pose(start)}\n"
+                                           f"150,4,0,,{pose(start)}\n160,2,0,,{pose(far)}\n")
+    (tmp_path / "resets.csv").write_text("frames,outcome,steps\n60,success,7\n170,success,6\n180,manual,5\n")
+    stops, shares, resets = probe["by_stretch"](env, tmp_path, 100)
+    assert (stops, shares, resets) == ([100, 200], [1.0, 0.5], [1, 2])
+    row = probe["measure"](env, tmp_path, 100, 200)
+    assert (row["triggers"], row["inside"], row["reset_episodes"], row["reset_success"], row["manual_resets"]) == \
+        (2, 0.5, 2, 0.5, 2)

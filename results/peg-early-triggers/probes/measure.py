@@ -12,7 +12,9 @@ agent at a state inside the task's at-initial-state check (``d_start < 0.2``, fr
 logged the env's own flag, ``at_initial_state``, the two are compared); the reset episodes that ended in the
 stretch and the share that succeeded; and at ``--end`` (the last ``progress.csv`` row at or before it) the
 manual resets and the forward share. A run that has not reached ``--end`` is listed as running. Per
-configuration, the mean of the finished runs with its bootstrap 95% interval (three or more).
+configuration, the mean of the finished runs with its bootstrap 95% interval (three or more). ``--figure PNG``
+also draws every run stretch by stretch (``--window`` steps, as far as it has gone): the share of its
+triggers at the start and its reset episodes, configurations in colours.
 """
 from __future__ import annotations
 
@@ -58,6 +60,46 @@ def measure(env: PegInsertionEnv, run: Path, start: int, end: int) -> dict:
     return row
 
 
+def by_stretch(env: PegInsertionEnv, run: Path, window: int) -> tuple[list[int], list[float], list[int]]:
+    """Per stretch of ``window`` steps that ``progress.csv`` has reached: its end, the share of its triggers
+    inside the check (NaN without a trigger) and the reset episodes that ended in it."""
+    reached = max((int(r["frames"]) for r in run_table(run, "progress.csv")), default=0)
+    triggers = [(int(t["frames"]), d_start(env, np.array(t["observation"].split(), dtype=float)[:7]) < CHECK)
+                for t in run_table(run, "triggers.csv")]
+    ends = [int(r["frames"]) for r in run_table(run, "resets.csv")]
+    stops, shares, resets = [], [], []
+    for stop in range(window, reached + 1, window):
+        inside = [i for f, i in triggers if stop - window < f <= stop]
+        stops.append(stop)
+        shares.append(float(np.mean(inside)) if inside else float("nan"))
+        resets.append(sum(stop - window < e <= stop for e in ends))
+    return stops, shares, resets
+
+
+def figure(env: PegInsertionEnv, runs: dict[str, list[Path]], window: int):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, (top, bottom) = plt.subplots(2, 1, figsize=(7.5, 6.0), sharex=True)
+    for i, (name, folders) in enumerate(runs.items()):
+        for k, run in enumerate(folders):
+            stops, shares, resets = by_stretch(env, run, window)
+            x = [s / 1000 for s in stops]
+            label = name if k == 0 else None
+            top.plot(x, [100 * v for v in shares], marker="o", markersize=3, color=f"C{i}", alpha=0.8, label=label)
+            bottom.plot(x, resets, marker="o", markersize=3, color=f"C{i}", alpha=0.8, label=label)
+    top.set_ylabel(f"triggers at the start (%)\nper {window // 1000}k steps")
+    bottom.set_ylabel(f"reset episodes\nper {window // 1000}k steps")
+    bottom.set_xlabel("steps (thousands), at the end of each stretch")
+    top.legend(fontsize=8)
+    top.set_title("Peg insert: where the trigger stops the forward agent (d_start < 0.2: already at the start)",
+                  fontsize=9)
+    fig.tight_layout()
+    return fig
+
+
 def _cell(values, share: bool) -> str:
     mean, low, high = bootstrap_interval(values)
     show = (lambda v: f"{100 * v:.0f}%") if share else (lambda v: f"{v:.0f}")
@@ -72,7 +114,11 @@ def main(argv=None) -> None:
     parser.add_argument("--seeds", default="0-2")
     parser.add_argument("--start", type=int, default=30000)
     parser.add_argument("--end", type=int, default=50000)
+    parser.add_argument("--figure", type=Path, default=None, help="a PNG of every run stretch by stretch")
+    parser.add_argument("--window", type=int, default=10000, help="the figure's stretch in steps (default 10,000)")
     args = parser.parse_args(argv)
+    if args.window < 1:
+        parser.error("--window must be a positive number of steps")
     if not 0 <= args.start < args.end:
         parser.error("the stretch needs 0 <= --start < --end")
     env = PegInsertionEnv("insert")
@@ -81,7 +127,7 @@ def main(argv=None) -> None:
     print(f"| configuration | seed | triggers {stretch} | inside the check | reset episodes {stretch} | reset success "
           f"{stretch} | manual resets at {args.end // 1000}k | forward share |")
     print("|---|---|---|---|---|---|---|---|")
-    finished = {}
+    finished, started = {}, {}
     for item in args.configurations:
         name, _, folder = item.partition("=")
         if not folder:
@@ -91,6 +137,7 @@ def main(argv=None) -> None:
             if not (run / "config.yaml").exists():
                 print(f"| {name} | {seed} | not started | | | | | |")
                 continue
+            started.setdefault(name, []).append(run)
             r = measure(env, run, args.start, args.end)
             if "triggers" not in r:
                 print(f"| {name} | {seed} | running (at {r['reached']}) | | | | | |")
@@ -106,6 +153,9 @@ def main(argv=None) -> None:
         print(f"| {name} | {len(rows)} | {_cell([r['inside'] for r in rows], True)} | "
               f"{_cell([r['reset_success'] for r in rows], True)} | {_cell([r['manual_resets'] for r in rows], False)} | "
               f"{_cell([r['forward_share'] for r in rows], True)} |")
+    if args.figure is not None:
+        figure(env, started, args.window).savefig(args.figure, dpi=120)
+        print(f"wrote {args.figure}")
 
 
 if __name__ == "__main__":
