@@ -38,7 +38,9 @@ def out_in_the_box(actions: torch.Tensor) -> str:
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("run", type=Path, help="a run folder of ours (runs/<task>/ours/seed<k>)")
-    parser.add_argument("--checkpoint", default=None, help="a checkpoint of the run (default: its latest)")
+    parser.add_argument("--checkpoint", default=None,
+                        help="a checkpoint of the run (default: its latest), or a kept state (checkpoints/kept/step_<n>, "
+                             "agents only: no replay rows to describe)")
     parser.add_argument("--last", type=int, default=200, help="how many of the last trigger states")
     args = parser.parse_args(argv)
     if args.last < 1:
@@ -61,8 +63,8 @@ def main(argv=None):
     for agent in ("forward", "reset"):
         try:
             rb = load_replay(args.run, agent, checkpoint=saved.checkpoint)
-        except FileNotFoundError:  # an agent that had stored no step by the checkpoint (every step triggered)
-            print(f"{agent} replay, 0 rows")
+        except FileNotFoundError as err:  # a kept state (agents only), or an agent that had stored no step yet
+            print(f"{agent} replay: none here ({err})")
             continue
         rows = min(rb.write_count, rb.storage.max_size)
         print(f"{agent} replay, {rows} rows: {out_in_the_box(rb.storage[:rows]['action'])}")
