@@ -158,7 +158,8 @@ PROBE_RUNS: dict[str, ProbeRun] = {
         lambda r, out: [r.cliff, "--last", "5"],  # the run's trigger set at 0.5 (algo.threshold)
         (rf"at step_{STEPS:010d}: the last \d+ trigger states, p_thresh 0.5$",
          r"^\| forward actor's \| [\d.]+ \| \d+% \|$", r"^\| reset actor's \| [\d.]+ \| \d+% \|$",
-         r"^forward actor at these states: \d+% beyond \+-0.9", r"^forward replay, \d+ rows",
+         r"^forward actor at these states: \d+% beyond \+-0.9",
+         r"^forward replay(, \d+ rows|: none here \(.*the forward agent had stored no step)",
          r"^reset replay, \d+ rows: \d+% beyond")),
     "screening-reset-actor/probes/reset_exploration.py": ProbeRun(
         lambda r, out: [f"tiny={r.cliff.parent}", "--seeds", "0", "--checkpoint", f"step_{STEPS:010d}", "--last", "50",
