@@ -916,3 +916,18 @@ def test_learn_from_forward_puts_the_forward_steps_in_the_reset_buffer_too(tmp_p
     finally:
         run.collector.shutdown()
         run.eval_env.close()
+
+
+def test_the_code_version_is_the_scripts_checkout_where_the_package_is_an_installed_copy(tmp_path, monkeypatch):
+    """With the package imported from outside any checkout (``pip install .``: a copy in site-packages), the commit
+    is that of the checkout the running script lives in (``recipes/train.py``); with neither, None."""
+    from torchrl_reset_recipes.training import run_folder
+
+    root = RECIPES.parent
+    head = subprocess.run(["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True, text=True)
+    if head.returncode != 0:
+        pytest.skip("the tests do not run from a git checkout here")
+    copy = tmp_path / "site-packages" / "torchrl_reset_recipes" / "training" / "run_folder.py"
+    monkeypatch.setattr(run_folder, "__file__", str(copy))
+    assert run_folder.code_version(str(RECIPES / "train.py"))["commit"] == head.stdout.strip()
+    assert run_folder.code_version(str(tmp_path / "elsewhere" / "train.py")) == {"commit": None, "modified": None}

@@ -7,23 +7,33 @@ import os
 import platform
 import signal
 import subprocess
+import sys
 from contextlib import contextmanager
 from pathlib import Path
 
 __all__ = ['RunFolderBusy', 'run_folder_lock', 'code_version', 'processor_name', 'RunInterrupted', 'stop_on_signals', 'reset_outcomes_by_quarter', 'CsvTable']
 
 
-def code_version() -> dict:
-    """The commit the code runs at and whether the work tree differs from it (None outside a git checkout)."""
-    root = Path(__file__).resolve().parents[2]
-    try:
-        commit = subprocess.run(["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True, text=True,
-                                timeout=10, check=True).stdout.strip()
-        status = subprocess.run(["git", "-C", str(root), "status", "--porcelain", "--untracked-files=no"],
-                                capture_output=True, text=True, timeout=10, check=True).stdout.strip()
-    except (OSError, subprocess.SubprocessError):
-        return {"commit": None, "modified": None}
-    return {"commit": commit, "modified": bool(status)}
+def code_version(script: str | None = None) -> dict:
+    """The commit the code runs at and whether the work tree differs from it (None outside a git checkout).
+
+    The checkout is the one the package is imported from (an editable install, or a run from the checkout);
+    where the package is installed as a copy (``pip install .``), the checkout of the script being run
+    (``script``, default ``sys.argv[0]``: ``recipes/train.py``), which such an install was made from."""
+    script = sys.argv[0] if script is None else script
+    roots = [Path(__file__).resolve().parents[2]]
+    if script:
+        roots.append(Path(script).resolve().parent.parent)
+    for root in roots:
+        try:
+            commit = subprocess.run(["git", "-C", str(root), "rev-parse", "HEAD"], capture_output=True, text=True,
+                                    timeout=10, check=True).stdout.strip()
+            status = subprocess.run(["git", "-C", str(root), "status", "--porcelain", "--untracked-files=no"],
+                                    capture_output=True, text=True, timeout=10, check=True).stdout.strip()
+        except (OSError, subprocess.SubprocessError):
+            continue
+        return {"commit": commit, "modified": bool(status)}
+    return {"commit": None, "modified": None}
 
 
 
