@@ -31,7 +31,7 @@ import numpy as np
 
 from torchrl_reset_recipes import TRAIN_SCRIPT
 
-__all__ = ["seed_list", "grid_command", "read_seed", "read_configuration", "bootstrap_interval", "screening_table",
+__all__ = ["seed_list", "named_folders", "grid_command", "read_seed", "read_configuration", "bootstrap_interval", "screening_table",
            "screening_figure", "HOLDS_AT", "main"]
 
 #: a seed holds when at least this share of its last quarter's reset episodes got back to the start
@@ -57,6 +57,18 @@ def seed_list(text: str) -> list[int]:
             raise ValueError(f"seeds must be numbers or ranges such as 0-9 or 0,3,7; got {text!r}")
         seeds += list(range(int(low), int(high) + 1)) if high else [int(low)]
     return seeds
+
+
+def named_folders(items: list[str]) -> dict[str, Path]:
+    """``["NAME=FOLDER", ...]`` -> ``{NAME: Path(FOLDER)}`` in the order given (each FOLDER holding ``seed<k>/``
+    run folders); an item without both parts: ValueError."""
+    folders = {}
+    for item in items:
+        name, _, folder = item.partition("=")
+        if not name or not folder:
+            raise ValueError(f"configurations are NAME=FOLDER, got {item!r}")
+        folders[name] = Path(folder)
+    return folders
 
 
 def grid_command(name: str, seeds: list[int], overrides: list[str], root: str, jobs: int) -> list[str]:
@@ -229,11 +241,10 @@ def main(argv=None) -> None:
         print(" ".join(command), flush=True)
         sys.exit(subprocess.call(command))
     folders = {p.name: p for p in sorted(args.root.iterdir()) if p.is_dir()} if args.root else {}
-    for item in args.config:
-        name, _, folder = item.partition("=")
-        if not name or not folder:
-            parser.error(f"--config takes NAME=FOLDER, got {item!r}")
-        folders[name] = Path(folder)
+    try:
+        folders.update(named_folders(args.config))
+    except ValueError as err:
+        parser.error(f"--config: {err}")
     if not folders:
         parser.error("give a root folder or at least one --config NAME=FOLDER")
     if args.out is None and args.root is None:

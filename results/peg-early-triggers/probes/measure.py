@@ -26,7 +26,7 @@ import numpy as np
 
 from torchrl_reset_envs import PegInsertionEnv
 from torchrl_reset_recipes.analysis.saved_runs import run_config, run_table
-from torchrl_reset_recipes.analysis.screen import bootstrap_interval, seed_list
+from torchrl_reset_recipes.analysis.screen import bootstrap_interval, named_folders, seed_list
 
 CHECK = 0.2  # insert task: at the initial state when d_start < 0.2
 
@@ -128,12 +128,13 @@ def main(argv=None) -> None:
           f"{stretch} | manual resets at {args.end // 1000}k | forward share |")
     print("|---|---|---|---|---|---|---|---|")
     finished, started = {}, {}
-    for item in args.configurations:
-        name, _, folder = item.partition("=")
-        if not folder:
-            parser.error(f"configurations are NAME=FOLDER, got {item!r}")
+    try:
+        configurations = named_folders(args.configurations)
+    except ValueError as err:
+        parser.error(str(err))
+    for name, folder in configurations.items():
         for seed in seed_list(args.seeds):
-            run = Path(folder) / f"seed{seed}"
+            run = folder / f"seed{seed}"
             if not (run / "config.yaml").exists():
                 print(f"| {name} | {seed} | not started | | | | | |")
                 continue

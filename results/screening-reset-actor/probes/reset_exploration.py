@@ -37,7 +37,7 @@ import torch
 
 from torchrl_reset_recipes.analysis.saved_runs import (greedy_actions, load_agents, load_replay, logged_observations,
                                                        run_table, trigger_probability)
-from torchrl_reset_recipes.analysis.screen import bootstrap_interval, seed_list
+from torchrl_reset_recipes.analysis.screen import bootstrap_interval, named_folders, seed_list
 
 COLUMNS = ("spread", "p_stored", "p_mu_r", "p_uniform", "below_uniform", "trigger_p_forward",
            "trigger_below_forward", "triggers", "forward_before_trigger")
@@ -114,12 +114,13 @@ def main(argv=None) -> None:
     parser.add_argument("--out", type=Path, required=True)
     args = parser.parse_args(argv)
     rows = []
-    for item in args.configurations:
-        name, _, folder = item.partition("=")
-        if not folder:
-            parser.error(f"configurations are NAME=FOLDER, got {item!r}")
+    try:
+        configurations = named_folders(args.configurations)
+    except ValueError as err:
+        parser.error(str(err))
+    for name, folder in configurations.items():
         for seed in seed_list(args.seeds):
-            run = Path(folder) / f"seed{seed}"
+            run = folder / f"seed{seed}"
             row = {"configuration": name, "seed": seed, **probe_run(run, args.checkpoint, args.last)}
             print(", ".join(f"{k} {v:.3g}" if isinstance(v, float) else f"{k} {v}" for k, v in row.items()),
                   flush=True)
