@@ -31,7 +31,7 @@ import numpy as np
 
 from torchrl_reset_recipes import TRAIN_SCRIPT
 
-__all__ = ["seed_list", "named_folders", "grid_command", "read_seed", "read_configuration", "bootstrap_interval", "screening_table",
+__all__ = ["seed_list", "named_folders", "seed_runs", "grid_command", "read_seed", "read_configuration", "bootstrap_interval", "screening_table",
            "screening_figure", "HOLDS_AT", "main"]
 
 #: a seed holds when at least this share of its last quarter's reset episodes got back to the start
@@ -69,6 +69,13 @@ def named_folders(items: list[str]) -> dict[str, Path]:
             raise ValueError(f"configurations are NAME=FOLDER, got {item!r}")
         folders[name] = Path(folder)
     return folders
+
+
+def seed_runs(items: list[str], seeds: str) -> list[tuple[str, int, Path]]:
+    """``(NAME, k, FOLDER/seed<k>)`` for each ``NAME=FOLDER`` of ``items`` and each seed of ``seeds`` (as
+    :func:`seed_list` reads it), configuration by configuration; a malformed item or seed list: ValueError."""
+    return [(name, seed, folder / f"seed{seed}") for name, folder in named_folders(items).items()
+            for seed in seed_list(seeds)]
 
 
 def grid_command(name: str, seeds: list[int], overrides: list[str], root: str, jobs: int) -> list[str]:

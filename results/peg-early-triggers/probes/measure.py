@@ -26,7 +26,7 @@ import numpy as np
 
 from torchrl_reset_envs import PegInsertionEnv
 from torchrl_reset_recipes.analysis.saved_runs import run_config, run_table
-from torchrl_reset_recipes.analysis.screen import bootstrap_interval, named_folders, seed_list
+from torchrl_reset_recipes.analysis.screen import bootstrap_interval, seed_runs
 
 CHECK = 0.2  # insert task: at the initial state when d_start < 0.2
 
@@ -129,24 +129,22 @@ def main(argv=None) -> None:
     print("|---|---|---|---|---|---|---|---|")
     finished, started = {}, {}
     try:
-        configurations = named_folders(args.configurations)
+        runs = seed_runs(args.configurations, args.seeds)
     except ValueError as err:
         parser.error(str(err))
-    for name, folder in configurations.items():
-        for seed in seed_list(args.seeds):
-            run = folder / f"seed{seed}"
-            if not (run / "config.yaml").exists():
-                print(f"| {name} | {seed} | not started | | | | | |")
-                continue
-            started.setdefault(name, []).append(run)
-            r = measure(env, run, args.start, args.end)
-            if "triggers" not in r:
-                print(f"| {name} | {seed} | running (at {r['reached']}) | | | | | |")
-                continue
-            finished.setdefault(name, []).append(r)
-            agrees = "" if r["env_flag_agrees"] is None else f" (env's flag agrees on {100 * r['env_flag_agrees']:.0f}%)"
-            print(f"| {name} | {seed} | {r['triggers']} | {100 * r['inside']:.0f}%{agrees} | {r['reset_episodes']} | "
-                  f"{100 * r['reset_success']:.0f}% | {r['manual_resets']} | {r['forward_share']:.2f} |")
+    for name, seed, run in runs:
+        if not (run / "config.yaml").exists():
+            print(f"| {name} | {seed} | not started | | | | | |")
+            continue
+        started.setdefault(name, []).append(run)
+        r = measure(env, run, args.start, args.end)
+        if "triggers" not in r:
+            print(f"| {name} | {seed} | running (at {r['reached']}) | | | | | |")
+            continue
+        finished.setdefault(name, []).append(r)
+        agrees = "" if r["env_flag_agrees"] is None else f" (env's flag agrees on {100 * r['env_flag_agrees']:.0f}%)"
+        print(f"| {name} | {seed} | {r['triggers']} | {100 * r['inside']:.0f}%{agrees} | {r['reset_episodes']} | "
+              f"{100 * r['reset_success']:.0f}% | {r['manual_resets']} | {r['forward_share']:.2f} |")
     print()
     print("| configuration | runs | inside the check | reset success | manual resets | forward share |")
     print("|---|---|---|---|---|---|")

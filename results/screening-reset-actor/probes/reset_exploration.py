@@ -37,7 +37,7 @@ import torch
 
 from torchrl_reset_recipes.analysis.saved_runs import (greedy_actions, load_agents, load_replay, logged_observations,
                                                        run_table, trigger_probability)
-from torchrl_reset_recipes.analysis.screen import bootstrap_interval, named_folders, seed_list
+from torchrl_reset_recipes.analysis.screen import bootstrap_interval, seed_runs
 
 COLUMNS = ("spread", "p_stored", "p_mu_r", "p_uniform", "below_uniform", "trigger_p_forward",
            "trigger_below_forward", "triggers", "forward_before_trigger")
@@ -115,16 +115,14 @@ def main(argv=None) -> None:
     args = parser.parse_args(argv)
     rows = []
     try:
-        configurations = named_folders(args.configurations)
+        runs = seed_runs(args.configurations, args.seeds)
     except ValueError as err:
         parser.error(str(err))
-    for name, folder in configurations.items():
-        for seed in seed_list(args.seeds):
-            run = folder / f"seed{seed}"
-            row = {"configuration": name, "seed": seed, **probe_run(run, args.checkpoint, args.last)}
-            print(", ".join(f"{k} {v:.3g}" if isinstance(v, float) else f"{k} {v}" for k, v in row.items()),
-                  flush=True)
-            rows.append(row)
+    for name, seed, run in runs:
+        row = {"configuration": name, "seed": seed, **probe_run(run, args.checkpoint, args.last)}
+        print(", ".join(f"{k} {v:.3g}" if isinstance(v, float) else f"{k} {v}" for k, v in row.items()),
+              flush=True)
+        rows.append(row)
     args.out.mkdir(parents=True, exist_ok=True)
     with open(args.out / "reset_exploration.csv", "w", newline="") as f:
         writer = csv.DictWriter(f, fieldnames=["configuration", "seed", *COLUMNS])
