@@ -167,6 +167,17 @@ PROBE_RUNS: dict[str, ProbeRun] = {
         (r"^configuration tiny, seed 0, spread [\d.e-]+, p_stored .* triggers \d+, forward_before_trigger",
          r"^\| tiny \| 1 \| "),
         wrote=_exists("reset_exploration.csv", "reset_exploration.md")),
+    "100000-tanh-normal-auto/probes/trigger_noise.py": ProbeRun(
+        lambda r, out: [r.cliff, "--episodes", "2", "--trajectory", "3", "--burn-in", "10"],
+        (r"2 forward episodes per case, H_f 20, p_thresh 0.5, seed 0$",
+         r"^\| 0 \| (yes|no) \| [\d.]+ \| [\d.]+ \| [\d.]+ \|$",
+         *(rf"^\| {case} \| \d+% \| \d+% \| ([\d.]+|-) \| (\d+%|-) \| [\d.]+ \|$"
+           for case in ("carried", "carried, clipped", "restarted", "none")))),
+    "peg-early-triggers/probes/coverage.py": ProbeRun(
+        lambda r, out: [r.peg, "--start", "50", "--end", "150"],
+        (r"^Rows written in 50-150 steps",
+         *(rf"seed0 \| {agent} \| (\d+ \| \d+% \| [\d.]+, [\d.]+, [\d.]+|0 \| \| ) \|$"
+           for agent in ("reset", "forward")))),
     "peg-early-triggers/probes/measure.py": ProbeRun(
         lambda r, out: [f"tiny={r.peg.parent}", "absent=" + str(out / "none"), "--seeds", "0", "--start", "0",
                         "--end", str(STEPS), "--figure", out / "stretches.png", "--window", "100"],
@@ -366,3 +377,23 @@ def test_measure_counts_the_triggers_at_the_start_stretch_by_stretch(tmp_path):
     row = probe["measure"](env, tmp_path, 100, 200)
     assert (row["triggers"], row["inside"], row["reset_episodes"], row["reset_success"], row["manual_resets"]) == \
         (2, 0.5, 2, 0.5, 2)
+
+
+def test_trigger_noise_steps_the_runs_ornstein_uhlenbeck_noise():
+    """trigger_noise.py's noise, worked out by hand: without sigma it decays by (1 - theta dt) a step
+    (0.9925 ** 10 = 0.92748 at theta 0.15, dt 0.05); without theta each step adds sigma sqrt(dt) eps, so that after
+    n steps from zero its variance is n sigma**2 dt (100 steps at sigma 0.2, dt 0.05: 0.2); a restart is zero."""
+    import torch
+
+    probe = runpy.run_path(str(ROOT / "results" / "100000-tanh-normal-auto" / "probes" / "trigger_noise.py"))
+    noise = probe["OUNoise"](3, theta=0.15, sigma=0.0, dt=0.05, generator=torch.Generator().manual_seed(0))
+    noise.state = torch.ones(3)
+    for _ in range(10):
+        noise.step()
+    assert torch.allclose(noise.state, torch.full((3,), 0.92748), atol=1e-5)
+    noise.restart()
+    assert torch.equal(noise.state, torch.zeros(3))
+    walk = probe["OUNoise"](20000, theta=0.0, sigma=0.2, dt=0.05, generator=torch.Generator().manual_seed(0))
+    for _ in range(100):
+        walk.step()
+    assert abs(float(walk.state.var()) - 0.2) < 0.01  # 20,000 components: the sample variance within 5%
