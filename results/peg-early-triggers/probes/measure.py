@@ -51,12 +51,20 @@ def measure(env: PegInsertionEnv, run: Path, start: int, end: int) -> dict:
     inside = [d_start(env, np.array(t["observation"].split(), dtype=float)[:7]) < CHECK for t in triggers]
     logged = [t.get("at_initial_state", "") for t in triggers]
     resets = [r for r in run_table(run, "resets.csv") if start < int(r["frames"]) <= end]
+    # a reset episode that a trigger began starts at the trigger's step (its end minus its steps)
+    begun_inside = {int(t["frames"]): i for t, i in zip(triggers, inside)}
+    after = {True: [], False: []}
+    for r in resets:
+        where = begun_inside.get(int(r["frames"]) - int(r["steps"]))
+        if where is not None:
+            after[where].append(r["outcome"] == "success")
     row.update(triggers=len(triggers), inside=float(np.mean(inside)) if inside else float("nan"),
                env_flag_agrees=(None if "" in logged or not logged else
                                 sum(int(f) == i for f, i in zip(logged, inside)) / len(logged)),
                reset_episodes=len(resets),
                reset_success=float(np.mean([r["outcome"] == "success" for r in resets])) if resets else float("nan"),
-               manual_resets=int(progress[-1]["manual_resets"]), forward_share=float(progress[-1]["forward_share"]))
+               manual_resets=int(progress[-1]["manual_resets"]), forward_share=float(progress[-1]["forward_share"]),
+               after_inside=after[True], after_outside=after[False])
     return row
 
 
@@ -145,6 +153,15 @@ def main(argv=None) -> None:
         agrees = "" if r["env_flag_agrees"] is None else f" (env's flag agrees on {100 * r['env_flag_agrees']:.0f}%)"
         print(f"| {name} | {seed} | {r['triggers']} | {100 * r['inside']:.0f}%{agrees} | {r['reset_episodes']} | "
               f"{100 * r['reset_success']:.0f}% | {r['manual_resets']} | {r['forward_share']:.2f} |")
+    print()
+    print(f"Reset episodes begun by a trigger in {stretch}, by where the trigger fired:")
+    print("| configuration | seed | begun inside the check | of them successful | begun outside | of them successful |")
+    print("|---|---|---|---|---|---|")
+    share = lambda outcomes: f"{100 * np.mean(outcomes):.0f}%" if outcomes else "-"  # noqa: E731
+    for name, rows in finished.items():
+        for r in rows:
+            print(f"| {name} | {Path(r['run']).name.removeprefix('seed')} | {len(r['after_inside'])} | {share(r['after_inside'])} | "
+                  f"{len(r['after_outside'])} | {share(r['after_outside'])} |")
     print()
     print("| configuration | runs | inside the check | reset success | manual resets | forward share |")
     print("|---|---|---|---|---|---|")
