@@ -178,6 +178,9 @@ PROBE_RUNS: dict[str, ProbeRun] = {
         (r"^Rows written in 50-150 steps",
          *(rf"seed0 \| {agent} \| (\d+ \| \d+% \| [\d.]+, [\d.]+, [\d.]+|0 \| \| ) \|$"
            for agent in ("reset", "forward")))),
+    "peg-early-triggers/probes/resets_from_the_start.py": ProbeRun(
+        lambda r, out: [r.peg, "--start", "0", "--end", str(STEPS), "--last", "3"],
+        (rf"of the last \d+ trigger states in 0-{STEPS}, \d+ inside the check; reset horizon 40, the run's minimum 5 steps$",)),
     "peg-early-triggers/probes/measure.py": ProbeRun(
         lambda r, out: [f"tiny={r.peg.parent}", "absent=" + str(out / "none"), "--seeds", "0", "--start", "0",
                         "--end", str(STEPS), "--figure", out / "stretches.png", "--window", "100"],
