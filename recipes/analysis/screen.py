@@ -31,8 +31,8 @@ import numpy as np
 
 from torchrl_reset_recipes import TRAIN_SCRIPT
 
-__all__ = ["seed_list", "named_folders", "seed_runs", "grid_command", "read_seed", "read_configuration", "bootstrap_interval", "screening_table",
-           "screening_figure", "HOLDS_AT", "main"]
+__all__ = ["seed_list", "named_folders", "seed_runs", "grid_command", "read_seed", "read_configuration",
+           "bootstrap_interval", "screening_table", "screening_figure", "HOLDS_AT", "main"]
 
 #: a seed holds when at least this share of its last quarter's reset episodes got back to the start
 HOLDS_AT = 0.5

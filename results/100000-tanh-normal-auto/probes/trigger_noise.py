@@ -80,7 +80,7 @@ def run_case(case: str, saved, episodes: int, seed: int, burn_in: int) -> dict:
                     float(settings["dt"]), generator)
     for _ in range(burn_in):
         noise.step()
-    horizon, p_thresh = int(cfg.task.forward_horizon), float(spec.trigger_threshold)
+    horizon, p_thresh = spec.forward_horizon, float(spec.trigger_threshold)
     executed, triggered, at_start = [], [], []
     for _ in range(episodes):
         td = env.reset()

@@ -65,7 +65,7 @@ def main(argv=None) -> None:
     saved = load_agents(args.run, checkpoint=args.checkpoint, agents=("reset",))
     if saved.cfg.task.name != "peg_insertion_insert":
         raise SystemExit(f"{args.run} is a run of {saved.cfg.task.name}: the check here is peg insertion (insert)'s")
-    horizon = int(saved.cfg.reset.max_steps or 2 * saved.cfg.task.forward_horizon)
+    horizon = saved.spec.reset_horizon  # H_r, as the recipe works it out
     min_steps = int(saved.cfg.reset.min_steps)
     env = PegInsertionEnv("insert")
     env.reset(seed=args.seed)
