@@ -383,21 +383,30 @@ def test_measure_counts_the_triggers_at_the_start_stretch_by_stretch(tmp_path):
         (2, 0.5, 2, 0.5, 2)
 
 
-def test_trigger_noise_steps_the_runs_ornstein_uhlenbeck_noise():
-    """trigger_noise.py's noise, worked out by hand: without sigma it decays by (1 - theta dt) a step
-    (0.9925 ** 10 = 0.92748 at theta 0.15, dt 0.05); without theta each step adds sigma sqrt(dt) eps, so that after
-    n steps from zero its variance is n sigma**2 dt (100 steps at sigma 0.2, dt 0.05: 0.2); a restart is zero."""
+def test_trigger_noise_carries_the_runs_ornstein_uhlenbeck_noise():
+    """trigger_noise.py's noise, the recipe's module carried from call to call, worked out by hand: without sigma
+    it decays by (1 - theta dt) a step (0.9925 ** 10 = 0.92748 at theta 0.15, dt 0.05) and is added to the action;
+    without theta each step adds sigma sqrt(dt) eps, so that after n steps from zero its variance is n sigma**2 dt
+    (100 steps at sigma 0.2, dt 0.05: 0.2); after a restart the next step starts again from zero."""
     import torch
+    from torchrl.data import Bounded
+    from torchrl.modules import OrnsteinUhlenbeckProcessModule
+
+    def module(dim, theta, sigma, dt):
+        return OrnsteinUhlenbeckProcessModule(spec=Bounded(-1.0, 1.0, shape=(dim,)), eps_init=1.0, eps_end=1.0,
+                                              annealing_num_steps=1, theta=theta, sigma=sigma, dt=dt, safe=False)
 
     probe = runpy.run_path(str(ROOT / "results" / "100000-tanh-normal-auto" / "probes" / "trigger_noise.py"))
-    noise = probe["OUNoise"](3, theta=0.15, sigma=0.0, dt=0.05, generator=torch.Generator().manual_seed(0))
-    noise.state = torch.ones(3)
-    for _ in range(10):
-        noise.step()
-    assert torch.allclose(noise.state, torch.full((3,), 0.92748), atol=1e-5)
+    noise = probe["CarriedNoise"](module(3, theta=0.15, sigma=0.0, dt=0.05))
+    noise(torch.zeros(3))  # the first call starts the state at zero
+    noise.state["_ou_prev_noise"] = torch.ones(3)
+    for _ in range(9):
+        noise(torch.zeros(3))
+    assert torch.allclose(noise(torch.full((3,), 0.5)), torch.full((3,), 0.5 + 0.92748), atol=1e-5)
     noise.restart()
-    assert torch.equal(noise.state, torch.zeros(3))
-    walk = probe["OUNoise"](20000, theta=0.0, sigma=0.2, dt=0.05, generator=torch.Generator().manual_seed(0))
-    for _ in range(100):
-        walk.step()
-    assert abs(float(walk.state.var()) - 0.2) < 0.01  # 20,000 components: the sample variance within 5%
+    assert torch.equal(noise(torch.zeros(3)), torch.zeros(3))
+    torch.manual_seed(0)
+    walk = probe["CarriedNoise"](module(20000, theta=0.0, sigma=0.2, dt=0.05))
+    for _ in range(99):
+        walk(torch.zeros(20000))
+    assert abs(float(walk(torch.zeros(20000)).var()) - 0.2) < 0.01  # 20,000 components: the sample variance within 5%

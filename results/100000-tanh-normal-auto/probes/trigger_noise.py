@@ -16,7 +16,8 @@ With both agents as a checkpoint (or a kept state) holds them, and nothing learn
 forward episodes of at most the task's H_f steps, each from a fresh start state of the task (``env.reset()``:
 in the run a forward episode starts where a successful reset ended, inside the same at-initial-state check), and
 before each action scores it as the trigger does (the classifiers' mean ratio ``p``; it fires below p_thresh and
-the action is not executed). The forward action is the actor's, without noise, plus the noise handled as:
+the action is not executed). The forward action is the actor's, without noise, plus the runs' own noise module
+(the recipe's ``with_exploration``, fed one action at a time as the collector feeds it) handled as:
 
 - ``carried``: as in the runs: one noise process through all episodes, started at its stationary spread
   (``--burn-in`` steps from zero before the first episode), a step of it at every scored action;
@@ -39,47 +40,48 @@ score falls as the forward agent moves off the start, whichever action is scored
 from __future__ import annotations
 
 import argparse
-import math
 from pathlib import Path
 
 import torch
+from tensordict import TensorDict
 
 from torchrl_reset_envs import make_env
 from torchrl_reset_recipes.analysis.saved_runs import greedy_actions, load_agents, trigger_probability
-from torchrl_reset_recipes.training.agents import exploration_settings
+from torchrl_reset_recipes.training.agents import with_exploration
 from torchrl_reset_recipes.training.task_envs import env_kwargs
 
 CASES = ("carried", "carried, clipped", "restarted", "none")
 
 
-class OUNoise:
-    """The runs' noise (torchrl's ``OrnsteinUhlenbeckProcessModule`` with mu = 0, x0 = 0, a constant sigma):
-    ``n <- n + theta (0 - n) dt + sigma sqrt(dt) eps``, one step per scored action."""
+class CarriedNoise:
+    """The runs' own noise module (the recipe's ``with_exploration``, torchrl's ``OrnsteinUhlenbeckProcessModule``)
+    applied to one action at a time, its state carried from call to call in the private entries the collector
+    carries (``_ou_prev_noise``, ``_ou_steps``); after ``restart`` the next call sets ``is_init``, which starts the
+    noise again from zero, as the collector does at every episode's first step with ``exploration.restart: episode``."""
 
-    def __init__(self, dim: int, theta: float, sigma: float, dt: float, generator: torch.Generator) -> None:
-        self.theta, self.sigma, self.dt, self.generator = theta, sigma, dt, generator
-        self.state = torch.zeros(dim)
+    def __init__(self, module) -> None:
+        self.module, self.state, self.init = module, {}, True
 
     def restart(self) -> None:
-        self.state = torch.zeros_like(self.state)
+        self.init = True
 
-    def step(self) -> torch.Tensor:
-        eps = torch.randn(self.state.shape, generator=self.generator)
-        self.state = self.state - self.theta * self.state * self.dt + self.sigma * math.sqrt(self.dt) * eps
-        return self.state
+    def __call__(self, action: torch.Tensor) -> torch.Tensor:
+        td = TensorDict({"action": action.clone(), "is_init": torch.tensor([self.init]), **self.state}, [])
+        td = self.module(td)
+        self.state = {key: td.get(key) for key in td.keys() if key.startswith("_")}
+        self.init = False
+        return td.get("action")
 
 
 def run_case(case: str, saved, episodes: int, seed: int, burn_in: int) -> dict:
     cfg, spec = saved.cfg, saved.spec
     env = make_env(cfg.task.name, **env_kwargs(cfg, for_eval=True))
     env.set_seed(seed)
-    generator = torch.Generator().manual_seed(seed)
-    settings = exploration_settings(spec)
+    torch.manual_seed(seed)  # the noise module draws from torch's global generator, as in the runs
     low, high = env.action_spec.space.low, env.action_spec.space.high
-    noise = OUNoise(env.action_spec.shape[-1], float(settings["theta"]), float(settings["sigma"]),
-                    float(settings["dt"]), generator)
+    noise = CarriedNoise(with_exploration(saved.forward.actor, env.action_spec, spec)[-1])
     for _ in range(burn_in):
-        noise.step()
+        noise(torch.zeros(env.action_spec.shape))
     horizon, p_thresh = spec.forward_horizon, float(spec.trigger_threshold)
     executed, triggered, at_start = [], [], []
     for _ in range(episodes):
@@ -91,7 +93,7 @@ def run_case(case: str, saved, episodes: int, seed: int, burn_in: int) -> dict:
             observation = td["observation"].reshape(1, -1)
             action = greedy_actions(saved.forward.actor, observation)[0]
             if case != "none":
-                action = action + noise.step()
+                action = noise(action)
             if case == "carried, clipped":
                 action = action.clamp(low, high)
             if float(trigger_probability(saved.reset.model, observation, action.reshape(1, -1))) < p_thresh:
