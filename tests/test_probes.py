@@ -362,25 +362,40 @@ def test_measure_counts_the_triggers_at_the_start_stretch_by_stretch(tmp_path):
     pose (d_start near 0: inside the check) and at 160 with its first joint turned 1 rad (far outside); resets ending
     at 60, 170 and 180. Stretches of 100 steps: (0, 100] one trigger, inside, one reset; (100, 200] two, one
     inside, two resets."""
-    from torchrl_reset_envs import PegInsertionEnv
-
     probe = runpy.run_path(str(ROOT / "results" / "peg-early-triggers" / "probes" / "measure.py"))
-    env = PegInsertionEnv("insert")
-    start = env.reset(seed=0)[0][:7]
+    check = probe["AtStart"]("peg_insertion_insert")
+    start = check.env.reset(seed=0)[0][:7]
     far = start.copy()
     far[0] += 1.0
-    assert probe["d_start"](env, start) < 0.01 and probe["d_start"](env, far) > 0.2  # the reset pose: near the start
+    assert probe["d_start"](check.env, start) < 0.01 and probe["d_start"](check.env, far) > 0.2  # the reset pose
     (tmp_path / "config.yaml").write_text("task:\n  name: peg_insertion_insert\n")
     (tmp_path / "progress.csv").write_text("frames,manual_resets,forward_share\n100,1,0.5\n200,2,0.4\n")
     pose = lambda q: " ".join(f"{v:.6g}" for v in q)  # noqa: E731
     (tmp_path / "triggers.csv").write_text(f"frames,steps,value,irrecoverable,observation\n50,3,0,,{pose(start)}\n"
                                            f"150,4,0,,{pose(start)}\n160,2,0,,{pose(far)}\n")
     (tmp_path / "resets.csv").write_text("frames,outcome,steps\n60,success,7\n170,success,6\n180,manual,5\n")
-    stops, shares, resets = probe["by_stretch"](env, tmp_path, 100)
+    stops, shares, resets = probe["by_stretch"](check, tmp_path, 100)
     assert (stops, shares, resets) == ([100, 200], [1.0, 0.5], [1, 2])
-    row = probe["measure"](env, tmp_path, 100, 200)
+    row = probe["measure"](check, tmp_path, 100, 200)
     assert (row["triggers"], row["inside"], row["reset_episodes"], row["reset_success"], row["manual_resets"]) == \
         (2, 0.5, 2, 0.5, 2)
+    with pytest.raises(SystemExit, match="a run of peg_insertion_insert, the others of cliff_cheetah"):
+        probe["measure"](probe["AtStart"]("cliff_cheetah"), tmp_path, 100, 200)
+
+
+def test_measure_checks_cliff_cheetah_at_its_start():
+    """cliff-cheetah's check, |x| < 0.1 and |pitch| < 0.1 (the task's definition), on 18-value observations written
+    by hand: the positions first (x, z, pitch, six joints), then nine velocities, which the check ignores."""
+    probe = runpy.run_path(str(ROOT / "results" / "peg-early-triggers" / "probes" / "measure.py"))
+    check = probe["AtStart"]("cliff_cheetah")
+
+    def state(x, pitch, velocity=0.0):
+        return " ".join(str(v) for v in [x, 0.02, pitch] + [0.3] * 6 + [velocity] * 9)
+
+    assert check(state(0.05, -0.08)) and check(state(-0.09, 0.09, velocity=5.0))
+    assert not check(state(0.15, 0.0)) and not check(state(0.0, -0.12)) and not check(state(-1.13, 0.08))
+    with pytest.raises(SystemExit, match="a run of cliff_walker"):
+        probe["AtStart"]("cliff_walker")
 
 
 def test_trigger_noise_carries_the_runs_ornstein_uhlenbeck_noise():

@@ -5,11 +5,13 @@
         release_actor=runs/peg-early-triggers/release_actor/peg_insertion_insert/ours \\
         learn_from_forward=runs/peg-early-triggers/learn_from_forward/peg_insertion_insert/ours --seeds 0-2
 
-Each ``NAME=FOLDER`` holds ``seed<k>/`` run folders of peg insertion (insert). For the stretch ``--start`` to
-``--end`` (default 30,000-50,000 steps) and each run: its triggers, and how many of them stopped the forward
-agent at a state inside the task's at-initial-state check (``d_start < 0.2``, from the arm's joint positions in
-``triggers.csv`` on the task's model, as ``../../lnt-sparse/probes/peg_check.py`` works it out; where the run
-logged the env's own flag, ``at_initial_state``, the two are compared); the reset episodes that ended in the
+Each ``NAME=FOLDER`` holds ``seed<k>/`` run folders of one task: peg insertion (insert) or cliff-cheetah. For
+the stretch ``--start`` to ``--end`` (default 30,000-50,000 steps) and each run: its triggers, and how many of
+them stopped the forward agent at a state inside the task's at-initial-state check, worked out from the state
+``triggers.csv`` logged on the task's model (peg: ``d_start < 0.2`` from the arm's joint positions, as
+``../../lnt-sparse/probes/peg_check.py`` works it out; cliff-cheetah: ``|x| < 0.1`` and ``|pitch| < 0.1``, the
+env's own ``reset_success`` on the body's position; where the run logged the env's flag, ``at_initial_state``,
+the two are compared); the reset episodes that ended in the
 stretch and the share that succeeded; and at ``--end`` (the last ``progress.csv`` row at or before it) the
 manual resets and the forward share. A run that has not reached ``--end`` is listed as running. Per
 configuration, the mean of the finished runs with its bootstrap 95% interval (three or more). ``--figure PNG``
@@ -24,7 +26,7 @@ from pathlib import Path
 import mujoco
 import numpy as np
 
-from torchrl_reset_envs import PegInsertionEnv
+from torchrl_reset_envs import CliffCheetahEnv, PegInsertionEnv
 from torchrl_reset_recipes.analysis.saved_runs import run_config, run_table
 from torchrl_reset_recipes.analysis.screen import bootstrap_interval, seed_runs
 
@@ -39,16 +41,39 @@ def d_start(env: PegInsertionEnv, qpos) -> float:
     return env.d_start()
 
 
-def measure(env: PegInsertionEnv, run: Path, start: int, end: int) -> dict:
+class AtStart:
+    """A task's own at-initial-state check on a state that ``triggers.csv`` logged (its ``observation`` column),
+    worked out on the task's model: ``check(observation) -> bool``."""
+
+    #: the tasks measured here: their name in the figure and their check
+    TASKS = {"peg_insertion_insert": ("Peg insert", f"d_start < {CHECK}"),
+             "cliff_cheetah": ("Cliff-cheetah", "|x| < 0.1 and |pitch| < 0.1")}
+
+    def __init__(self, task: str) -> None:
+        if task not in self.TASKS:
+            raise SystemExit(f"a run of {task}: the checks measured here are {', '.join(self.TASKS)}'s")
+        self.task, (self.title, self.rule) = task, self.TASKS[task]
+        self.env = PegInsertionEnv("insert") if task == "peg_insertion_insert" else CliffCheetahEnv()
+        self.env.reset(seed=0)
+
+    def __call__(self, observation: str) -> bool:
+        values = np.array(observation.split(), dtype=float)
+        if self.task == "peg_insertion_insert":
+            return d_start(self.env, values[:7]) < CHECK
+        self.env.data.qpos[:] = values[: self.env.model.nq]  # the observation starts with the positions
+        return bool(self.env._status(None)[0])  # the env's reset_success
+
+
+def measure(check: AtStart, run: Path, start: int, end: int) -> dict:
     cfg = run_config(run)
-    if cfg.task.name != "peg_insertion_insert":
-        raise SystemExit(f"{run} is a run of {cfg.task.name}: the check measured here is peg insertion (insert)'s")
+    if cfg.task.name != check.task:
+        raise SystemExit(f"{run} is a run of {cfg.task.name}, the others of {check.task}: one task at a time")
     progress = [r for r in run_table(run, "progress.csv") if int(r["frames"]) <= end]
     row = {"run": str(run), "reached": int(progress[-1]["frames"]) if progress else 0}
     if row["reached"] < end:
         return row
     triggers = [t for t in run_table(run, "triggers.csv") if start < int(t["frames"]) <= end]
-    inside = [d_start(env, np.array(t["observation"].split(), dtype=float)[:7]) < CHECK for t in triggers]
+    inside = [check(t["observation"]) for t in triggers]
     logged = [t.get("at_initial_state", "") for t in triggers]
     resets = [r for r in run_table(run, "resets.csv") if start < int(r["frames"]) <= end]
     # a reset episode that a trigger began starts at the trigger's step (its end minus its steps)
@@ -68,12 +93,11 @@ def measure(env: PegInsertionEnv, run: Path, start: int, end: int) -> dict:
     return row
 
 
-def by_stretch(env: PegInsertionEnv, run: Path, window: int) -> tuple[list[int], list[float], list[int]]:
+def by_stretch(check: AtStart, run: Path, window: int) -> tuple[list[int], list[float], list[int]]:
     """Per stretch of ``window`` steps that ``progress.csv`` has reached: its end, the share of its triggers
     inside the check (NaN without a trigger) and the reset episodes that ended in it."""
     reached = max((int(r["frames"]) for r in run_table(run, "progress.csv")), default=0)
-    triggers = [(int(t["frames"]), d_start(env, np.array(t["observation"].split(), dtype=float)[:7]) < CHECK)
-                for t in run_table(run, "triggers.csv")]
+    triggers = [(int(t["frames"]), check(t["observation"])) for t in run_table(run, "triggers.csv")]
     ends = [int(r["frames"]) for r in run_table(run, "resets.csv")]
     stops, shares, resets = [], [], []
     for stop in range(window, reached + 1, window):
@@ -84,7 +108,7 @@ def by_stretch(env: PegInsertionEnv, run: Path, window: int) -> tuple[list[int],
     return stops, shares, resets
 
 
-def figure(env: PegInsertionEnv, runs: dict[str, list[Path]], window: int):
+def figure(check: AtStart, runs: dict[str, list[Path]], window: int):
     import matplotlib
 
     matplotlib.use("Agg")
@@ -93,7 +117,7 @@ def figure(env: PegInsertionEnv, runs: dict[str, list[Path]], window: int):
     fig, (top, bottom) = plt.subplots(2, 1, figsize=(7.5, 6.0), sharex=True)
     for i, (name, folders) in enumerate(runs.items()):
         for k, run in enumerate(folders):
-            stops, shares, resets = by_stretch(env, run, window)
+            stops, shares, resets = by_stretch(check, run, window)
             x = [s / 1000 for s in stops]
             label = name if k == 0 else None
             top.plot(x, [100 * v for v in shares], marker="o", markersize=3, color=f"C{i}", alpha=0.8, label=label)
@@ -102,7 +126,7 @@ def figure(env: PegInsertionEnv, runs: dict[str, list[Path]], window: int):
     bottom.set_ylabel(f"reset episodes\nper {window // 1000}k steps")
     bottom.set_xlabel("steps (thousands), at the end of each stretch")
     top.legend(fontsize=8)
-    top.set_title("Peg insert: where the trigger stops the forward agent (d_start < 0.2: already at the start)",
+    top.set_title(f"{check.title}: where the trigger stops the forward agent ({check.rule}: already at the start)",
                   fontsize=9)
     fig.tight_layout()
     return fig
@@ -129,8 +153,7 @@ def main(argv=None) -> None:
         parser.error("--window must be a positive number of steps")
     if not 0 <= args.start < args.end:
         parser.error("the stretch needs 0 <= --start < --end")
-    env = PegInsertionEnv("insert")
-    env.reset(seed=0)
+    check = None  # the first run's task's
     stretch = f"{args.start // 1000}-{args.end // 1000}k"
     print(f"| configuration | seed | triggers {stretch} | inside the check | reset episodes {stretch} | reset success "
           f"{stretch} | manual resets at {args.end // 1000}k | forward share |")
@@ -145,7 +168,9 @@ def main(argv=None) -> None:
             print(f"| {name} | {seed} | not started | | | | | |")
             continue
         started.setdefault(name, []).append(run)
-        r = measure(env, run, args.start, args.end)
+        if check is None:
+            check = AtStart(run_config(run).task.name)
+        r = measure(check, run, args.start, args.end)
         if "triggers" not in r:
             print(f"| {name} | {seed} | running (at {r['reached']}) | | | | | |")
             continue
@@ -169,8 +194,10 @@ def main(argv=None) -> None:
         print(f"| {name} | {len(rows)} | {_cell([r['inside'] for r in rows], True)} | "
               f"{_cell([r['reset_success'] for r in rows], True)} | {_cell([r['manual_resets'] for r in rows], False)} | "
               f"{_cell([r['forward_share'] for r in rows], True)} |")
-    if args.figure is not None:
-        figure(env, started, args.window).savefig(args.figure, dpi=120)
+    if args.figure is not None and check is None:
+        print(f"no run has started: no {args.figure}")
+    elif args.figure is not None:
+        figure(check, started, args.window).savefig(args.figure, dpi=120)
         print(f"wrote {args.figure}")
 
 
