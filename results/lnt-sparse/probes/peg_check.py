@@ -24,23 +24,33 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-import mujoco
 import numpy as np
+import torch
+from tensordict import TensorDict
+from torchrl.data import Bounded
+from torchrl.modules import OrnsteinUhlenbeckProcessModule
 
 from torchrl_reset_envs import PegInsertionEnv
 from torchrl_reset_envs.peg import PEG_GOAL, PEG_START, _RANGES
 
+from torchrl_reset_recipes.analysis.runs import recipe_defaults
 from torchrl_reset_recipes.analysis.saved_runs import run_table
 
 CHECK = 0.2  # insert task: at the initial state when d_start < 0.2
 
 
-def ou_actions(rng, steps: int, dim: int, theta=0.15, sigma=0.2, dt=0.05) -> np.ndarray:
-    """The recipe's Ornstein-Uhlenbeck noise from zero (torchrl's form: x += theta (0 - x) dt + sigma sqrt(dt) N)."""
-    x, out = np.zeros(dim), []
+def ou_actions(steps: int, dim: int) -> np.ndarray:
+    """The recipe's Ornstein-Uhlenbeck noise (torchrl's module with the recipe's ``exploration`` settings for this
+    task) added to a zero policy, started at zero; its draws come from torch's global generator."""
+    settings = recipe_defaults("peg_insertion_insert", "lnt_sparse")
+    noise = OrnsteinUhlenbeckProcessModule(
+        spec=Bounded(-1.0, 1.0, (dim,)), eps_init=1.0, eps_end=1.0, annealing_num_steps=1, safe=False,
+        theta=settings["exploration.theta"], sigma=settings["exploration.sigma"], dt=settings["exploration.dt"])
+    state, out = {"is_init": torch.tensor([True])}, []
     for _ in range(steps):
-        x = x - theta * x * dt + sigma * np.sqrt(dt) * rng.standard_normal(dim)
-        out.append(x.copy())
+        td = noise(TensorDict({"action": torch.zeros(dim), **state}, []))
+        state = {key: td.get(key) for key in td.keys() if key.startswith("_")} | {"is_init": torch.tensor([False])}
+        out.append(td.get("action").numpy())
     return np.array(out)
 
 
@@ -56,10 +66,8 @@ def rollout(env: PegInsertionEnv, actions: np.ndarray) -> tuple[float, float, fl
 
 
 def at_rest(env: PegInsertionEnv, qpos) -> float:
-    """d_start with the arm at joint positions ``qpos`` (kinematics only)."""
-    env.data.qpos[env._qadr] = qpos
-    env.data.qvel[:] = 0.0
-    mujoco.mj_forward(env.model, env.data)
+    """d_start with the arm at rest at joint positions ``qpos`` (kinematics only)."""
+    env.set_state(qpos, np.zeros(env.model.nv))
     return env.d_start()
 
 
@@ -74,6 +82,7 @@ def main(argv=None) -> None:
                         help="part 3 also stretch by stretch: the triggers logged in each WINDOW steps")
     args = parser.parse_args(argv)
     rng = np.random.default_rng(args.seed)
+    torch.manual_seed(args.seed)  # the noise module's draws
     env = PegInsertionEnv("insert")
     env.reset(seed=args.seed)
 
@@ -86,7 +95,7 @@ def main(argv=None) -> None:
 
     print(f"2. exploration from the start, {args.episodes} forward episodes of 100 steps each")
     kinds = {
-        "OU noise around a zero policy": lambda: ou_actions(rng, 100, 7),
+        "OU noise around a zero policy": lambda: ou_actions(100, 7),
         "uniform random actions": lambda: rng.uniform(-1, 1, (100, 7)),
         "one corner of the action box held": lambda: np.tile(rng.choice([-1.0, 1.0], 7), (100, 1)),
     }

@@ -23,7 +23,6 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-import mujoco
 import numpy as np
 
 from torchrl_reset_envs import CliffCheetahEnv, PegInsertionEnv
@@ -35,9 +34,7 @@ CHECK = 0.2  # insert task: at the initial state when d_start < 0.2
 
 def d_start(env: PegInsertionEnv, qpos) -> float:
     """The peg's distance from its start (the check's quantity) with the arm at joint positions ``qpos``."""
-    env.data.qpos[env._qadr] = qpos
-    env.data.qvel[:] = 0.0
-    mujoco.mj_forward(env.model, env.data)
+    env.set_state(qpos, np.zeros(env.model.nv))
     return env.d_start()
 
 
