@@ -4,6 +4,7 @@ folders, made once per session by the recipe, and prints what it should. Also th
 from __future__ import annotations
 
 import ast
+import math
 import re
 import runpy
 import shutil
@@ -154,6 +155,14 @@ PROBE_RUNS: dict[str, ProbeRun] = {
          r"^   one corner of the action box held: end inside the check", r"^3\. trigger states of the runs",
          r"seed0: \d+ triggers, \d+% already inside the check",
          r"^     (0-100|100-200): \d+ triggers, \d+% inside the check, d_start median [\d.]+$")),
+    "lnt-sparse/probes/trained_ensembles.py": ProbeRun(
+        lambda r, out: [f"at100={r.peg}:step_{100:010d}", f"at{STEPS}={r.peg}:step_{STEPS:010d}", "--triggers", "3",
+                        "--out", out / "ensembles.csv"],
+        (rf"^at{STEPS}: .* at {STEPS} steps, \d+ forward rows, \d+ reset rows \(\d+ one step from success\), Q_thresh 0.1$",
+         r"^  its last \d trigger states: logged at \d+-\d+ steps$",
+         rf"^\| at100 \| at{STEPS}'s forward rows \| \d+ \| -?[\d.]+ \| [\d.]+% \| \d+% \| -?[\d.]+ \| [\d.]+ \| [\d.]+ \|$",
+         rf"^\| at{STEPS} \| at100's trigger states, its actor's action \| [1-3] \| "),
+        wrote=_exists("ensembles.csv")),
     "100000-tanh-normal-auto/probes/trigger_actions.py": ProbeRun(
         lambda r, out: [r.cliff, "--last", "5"],  # the run's trigger set at 0.5 (algo.threshold)
         (rf"at step_{STEPS:010d}: the last \d+ trigger states, p_thresh 0.5$",
@@ -425,3 +434,29 @@ def test_trigger_noise_carries_the_runs_ornstein_uhlenbeck_noise():
     for _ in range(99):
         walk(torch.zeros(20000))
     assert abs(float(walk(torch.zeros(20000)).var()) - 0.2) < 0.01  # 20,000 components: the sample variance within 5%
+
+
+def test_trained_ensembles_scores_rows_as_the_trigger_would():
+    """Four rows of two forward episodes, three members' Q-values chosen by hand, Q_thresh 0.1: the minima are
+    1, 0.05, 4 and 2 (mean 1.7625), one row below Q_thresh (25%), in the first episode (1 of 2 episodes); the
+    members' means 2, 0.2, 4, 3 (mean 2.3); their standard deviations 1, 0.15, 0, 1 (mean 0.5375); mean - minimum
+    1, 0.15, 0, 1 (mean 0.5375)."""
+    import torch
+    from tensordict import TensorDict
+
+    probe = runpy.run_path(str(ROOT / "results" / "lnt-sparse" / "probes" / "trained_ensembles.py"))
+    q = torch.tensor([[1.0, 2.0, 3.0], [0.05, 0.2, 0.35], [4.0, 4.0, 4.0], [2.0, 3.0, 4.0]])
+
+    def model(td):  # a row's observation is its index into q
+        return td.set("state_action_value", q[td["observation"][:, 0].long()])
+
+    rows = TensorDict({"observation": torch.arange(4.0).reshape(4, 1), "action": torch.zeros(4, 1),
+                       "collector": {"traj_ids": torch.tensor([0, 0, 1, 1])}}, [4])
+    got = probe["scores"](model, rows, 0.1)
+    expected = {"rows": 4, "min_mean": 1.7625, "below_q_thresh": 0.25, "episodes_flagged": 0.5, "member_mean": 2.3,
+                "member_std": 0.5375, "mean_minus_min": 0.5375}
+    assert got == pytest.approx(expected)
+    unflagged = probe["scores"](model, rows.exclude("collector"), 0.1, by_episode=False)  # rows without episodes
+    assert math.isnan(unflagged["episodes_flagged"]) and unflagged["below_q_thresh"] == 0.25
+    with pytest.raises(SystemExit, match="NAME=RUN:CHECKPOINT"):
+        probe["parse"]("no-checkpoint-named")

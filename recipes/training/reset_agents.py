@@ -160,7 +160,8 @@ class RCEKind(ResetAgentKind):
 
 
 class LNTKind(ResetAgentKind):
-    """LNT (shaped reward) and LNT-sparse (the success flag as its reward): DDPG on K Q-functions with priors."""
+    """LNT (shaped reward) and LNT-sparse (the success flag as its reward): DDPG on K Q-functions, without priors
+    (``algo.prior_scale: 0``; the authors' K-critic DDPG class has none)."""
 
     critic_loss, scores_probability, reduction = "loss_value", False, "min"
 

@@ -1,0 +1,130 @@
+"""LNT-sparse's trained Q-ensembles side by side: why the release's semantics keep the trigger firing.
+
+    python results/lnt-sparse/probes/trained_ensembles.py \\
+        project=runs/lnt-sparse/peg_insertion_insert/lnt_sparse/seed0:step_0000025000 \\
+        release_seed0=runs/lnt-sparse/peg_insertion_insert/lnt_sparse_release/seed0:step_0000025000 \\
+        release_seed1=runs/lnt-sparse/peg_insertion_insert/lnt_sparse_release/seed1:step_0000025000 \\
+        --triggers 20 --out results/lnt-sparse/probes/trained_ensembles_25k.csv
+
+Each ``NAME=RUN:CHECKPOINT`` names a run folder and one of its checkpoints (a folder name under the run's
+``checkpoints/``, or a path). The probe loads each run's reset agent as that checkpoint holds it (the
+recipe's own networks, from the run's config) and each run's forward rows (the forward replay buffer at that
+checkpoint: the states and noisy actions the trigger scored). Every ensemble then scores every run's forward
+rows, so that what the ensemble learned is told apart from where its forward agent went: per (ensemble,
+rows), the trigger's score (the members' minimum: its mean and the share below Q_thresh, where the trigger
+fires; and the share of the forward episodes, by the collector's ``traj_ids``, with a row below it: episodes
+the trigger would stop now), the members' mean, their spread (standard deviation across members, averaged over rows) and the
+gap between the mean and the minimum (how much the minimum's pessimism adds). Also, on each run's own reset
+rows one step from success, the minimum (a reset agent that has learned its goal scores these high).
+
+The forward rows are the steps the forward agent took: a step the trigger stopped is not taken and not stored,
+so they leave out the states where the trigger fired. ``--triggers N`` adds those: each run's last N trigger
+states logged up to its checkpoint (``triggers.csv``), with the action its forward actor takes there at the
+checkpoint, without the exploration noise the trigger scored at the time.
+"""
+from __future__ import annotations
+
+import argparse
+import csv
+from pathlib import Path
+
+import torch
+from tensordict import TensorDict
+
+from torchrl_reset_recipes.analysis.saved_runs import (greedy_actions, load_agents, load_replay, logged_observations,
+                                                       model_values, run_table)
+from torchrl_reset_recipes.training.reset_agents import LNTKind
+
+
+def parse(spec: str) -> tuple[str, Path, Path]:
+    """``NAME=RUN:CHECKPOINT`` -> (name, run folder, checkpoint folder)."""
+    name, sep, rest = spec.partition("=")
+    run, sep2, checkpoint = rest.rpartition(":")
+    if not sep or not sep2 or not name or not run or not checkpoint:
+        raise SystemExit(f"name each ensemble as NAME=RUN:CHECKPOINT, got {spec!r}")
+    run, checkpoint = Path(run), Path(checkpoint)
+    if not checkpoint.exists() and (run / "checkpoints" / checkpoint).exists():
+        checkpoint = run / "checkpoints" / checkpoint  # a checkpoint's name under the run's checkpoints/
+    return name, run, checkpoint
+
+
+def scores(model, rows, q_thresh: float, by_episode: bool = True) -> dict[str, float]:
+    """The trigger's view of ``rows`` (observation, action) under ``model``, from the members' Q-values per row;
+    ``by_episode``: also the share of the rows' episodes with a row below ``q_thresh``."""
+    q = model_values(model, rows["observation"], rows["action"])
+    minimum, mean = q.min(-1).values, q.mean(-1)
+    below = minimum < q_thresh
+    episodes = rows["collector", "traj_ids"].reshape(-1) if by_episode else None
+    flagged = (float("nan") if episodes is None else  # episodes with a row the trigger would stop at
+               episodes[below].unique().numel() / episodes.unique().numel())
+    return {"rows": int(q.shape[0]), "min_mean": float(minimum.mean()), "below_q_thresh": float(below.float().mean()),
+            "episodes_flagged": flagged, "member_mean": float(mean.mean()), "member_std": float(q.std(-1).mean()),
+            "mean_minus_min": float((mean - minimum).mean())}
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+                                     formatter_class=argparse.RawDescriptionHelpFormatter,
+                                     epilog=__doc__.split("\n\n", 1)[1])
+    parser.add_argument("ensembles", nargs="+", help="NAME=RUN:CHECKPOINT, two or more")
+    parser.add_argument("--triggers", type=int, default=0,
+                        help="also score each run's last N trigger states logged up to its checkpoint (triggers.csv) "
+                             "with its forward actor's own action there, without noise")
+    parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--out", default=None, help="CSV of every (ensemble, rows) pair")
+    args = parser.parse_args(argv)
+    torch.set_num_threads(args.threads)
+    runs = [parse(spec) for spec in args.ensembles]
+    if len({name for name, _, _ in runs}) != len(runs):
+        raise SystemExit("give each ensemble its own NAME")
+    models, forward, near, thresholds, triggered = {}, {}, {}, {}, {}
+    for name, run, checkpoint in runs:
+        saved = load_agents(run, checkpoint=checkpoint, agents=("forward", "reset") if args.triggers else ("reset",))
+        if not isinstance(saved.spec.kind, LNTKind):
+            raise SystemExit(f"{run} is a run of {saved.spec.kind.name}: this probe reads LNT's Q-ensembles")
+        models[name], thresholds[name] = saved.reset.model, float(saved.spec.trigger_threshold)
+        rows = []
+        for agent in ("forward", "reset"):
+            rb = load_replay(run, agent, checkpoint=saved.checkpoint)
+            rows.append(rb.storage[:min(rb.write_count, rb.storage.max_size)].clone())
+        forward[name] = rows[0]
+        near[name] = rows[1][rows[1]["next", "reset_success"].reshape(-1)]
+        print(f"{name}: {run} at {saved.step} steps, {rows[0].shape[0]} forward rows, {rows[1].shape[0]} reset rows "
+              f"({near[name].shape[0]} one step from success), Q_thresh {thresholds[name]}", flush=True)
+        if args.triggers:
+            logged = [r for r in run_table(run, "triggers.csv") if int(r["frames"]) <= saved.step][-args.triggers:]
+            if logged:
+                states = logged_observations(logged)
+                triggered[name] = TensorDict({"observation": states,
+                                              "action": greedy_actions(saved.forward.actor, states)}, [len(states)])
+                print(f"  its last {len(logged)} trigger states: logged at {logged[0]['frames']}-{logged[-1]['frames']} "
+                      "steps", flush=True)
+    if len(set(thresholds.values())) != 1:
+        raise SystemExit(f"the runs' Q_thresh differ ({thresholds}): their triggers cannot be compared on one scale")
+    q_thresh = next(iter(thresholds.values()))
+
+    records = []
+    for ensemble, model in models.items():
+        for rows_of, rows in forward.items():
+            records.append({"ensemble": ensemble, "scored_on": f"{rows_of}'s forward rows", **scores(model, rows, q_thresh)})
+        for rows_of, rows in triggered.items():
+            records.append({"ensemble": ensemble, "scored_on": f"{rows_of}'s trigger states, its actor's action",
+                            **scores(model, rows, q_thresh, by_episode=False)})
+        records.append({"ensemble": ensemble, "scored_on": "its own rows one step from success",
+                        **scores(model, near[ensemble], q_thresh, by_episode=False)})
+    print("\n| ensemble | scored on | rows | minimum (the trigger's score) | below Q_thresh | episodes with one "
+          "| members' mean | members' std | mean - minimum |\n|---|---|---|---|---|---|---|---|---|")
+    for r in records:
+        flagged = "" if r["episodes_flagged"] != r["episodes_flagged"] else f"{r['episodes_flagged']:.0%}"
+        print(f"| {r['ensemble']} | {r['scored_on']} | {r['rows']} | {r['min_mean']:.3f} | {r['below_q_thresh']:.1%} | "
+              f"{flagged} | {r['member_mean']:.3f} | {r['member_std']:.3f} | {r['mean_minus_min']:.3f} |")
+    if args.out:
+        with open(args.out, "w", newline="") as f:
+            writer = csv.DictWriter(f, fieldnames=list(records[0]))
+            writer.writeheader()
+            writer.writerows(records)
+        print(f"wrote {args.out}")
+
+
+if __name__ == "__main__":
+    main()
