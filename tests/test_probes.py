@@ -157,11 +157,13 @@ PROBE_RUNS: dict[str, ProbeRun] = {
          r"^     (0-100|100-200): \d+ triggers, \d+% inside the check, d_start median [\d.]+$")),
     "lnt-sparse/probes/trained_ensembles.py": ProbeRun(
         lambda r, out: [f"at100={r.peg}:step_{100:010d}", f"at{STEPS}={r.peg}:step_{STEPS:010d}", "--triggers", "3",
-                        "--out", out / "ensembles.csv"],
+                        "--rollouts", "2", "--burn-in", "5", "--out", out / "ensembles.csv"],
         (rf"^at{STEPS}: .* at {STEPS} steps, \d+ forward rows, \d+ reset rows \(\d+ one step from success\), Q_thresh 0.1$",
          r"^  its last \d trigger states: logged at \d+-\d+ steps$",
          rf"^\| at100 \| at{STEPS}'s forward rows \| \d+ \| -?[\d.]+ \| [\d.]+% \| \d+% \| -?[\d.]+ \| [\d.]+ \| [\d.]+ \|$",
-         rf"^\| at{STEPS} \| at100's trigger states, its actor's action \| [1-3] \| "),
+         rf"^\| at{STEPS} \| at100's trigger states, its actor's action \| [1-3] \| ",
+         r"^Forward episodes with the trigger armed \(2 per pair, H_f 20, seed 0\)",
+         rf"^\| at{STEPS}'s (\| \d+% \[\d+%, \d+%\] \((\d+|-)\) ){{2}}\|$"),
         wrote=_exists("ensembles.csv")),
     "100000-tanh-normal-auto/probes/trigger_actions.py": ProbeRun(
         lambda r, out: [r.cliff, "--last", "5"],  # the run's trigger set at 0.5 (algo.threshold)
@@ -407,8 +409,8 @@ def test_measure_checks_cliff_cheetah_at_its_start():
         probe["AtStart"]("cliff_walker")
 
 
-def test_trigger_noise_carries_the_runs_ornstein_uhlenbeck_noise():
-    """trigger_noise.py's noise, the recipe's module carried from call to call, worked out by hand: without sigma
+def test_carried_noise_carries_the_runs_ornstein_uhlenbeck_noise():
+    """The probes' noise (saved_runs.CarriedNoise: the recipe's module carried from call to call), worked out by hand: without sigma
     it decays by (1 - theta dt) a step (0.9925 ** 10 = 0.92748 at theta 0.15, dt 0.05) and is added to the action;
     without theta each step adds sigma sqrt(dt) eps, so that after n steps from zero its variance is n sigma**2 dt
     (100 steps at sigma 0.2, dt 0.05: 0.2); after a restart the next step starts again from zero."""
@@ -420,8 +422,9 @@ def test_trigger_noise_carries_the_runs_ornstein_uhlenbeck_noise():
         return OrnsteinUhlenbeckProcessModule(spec=Bounded(-1.0, 1.0, shape=(dim,)), eps_init=1.0, eps_end=1.0,
                                               annealing_num_steps=1, theta=theta, sigma=sigma, dt=dt, safe=False)
 
-    probe = runpy.run_path(str(ROOT / "results" / "100000-tanh-normal-auto" / "probes" / "trigger_noise.py"))
-    noise = probe["CarriedNoise"](module(3, theta=0.15, sigma=0.0, dt=0.05))
+    from torchrl_reset_recipes.analysis.saved_runs import CarriedNoise
+
+    noise = CarriedNoise(module(3, theta=0.15, sigma=0.0, dt=0.05))
     noise(torch.zeros(3))  # the first call starts the state at zero
     noise.state["_ou_prev_noise"] = torch.ones(3)
     for _ in range(9):
@@ -430,7 +433,7 @@ def test_trigger_noise_carries_the_runs_ornstein_uhlenbeck_noise():
     noise.restart()
     assert torch.equal(noise(torch.zeros(3)), torch.zeros(3))
     torch.manual_seed(0)
-    walk = probe["CarriedNoise"](module(20000, theta=0.0, sigma=0.2, dt=0.05))
+    walk = CarriedNoise(module(20000, theta=0.0, sigma=0.2, dt=0.05))
     for _ in range(99):
         walk(torch.zeros(20000))
     assert abs(float(walk(torch.zeros(20000)).var()) - 0.2) < 0.01  # 20,000 components: the sample variance within 5%
@@ -460,3 +463,7 @@ def test_trained_ensembles_scores_rows_as_the_trigger_would():
     assert math.isnan(unflagged["episodes_flagged"]) and unflagged["below_q_thresh"] == 0.25
     with pytest.raises(SystemExit, match="NAME=RUN:CHECKPOINT"):
         probe["parse"]("no-checkpoint-named")
+    # the Wilson interval of 0 in 30 at 95%: [0, z^2 / (n + z^2)] = [0, 3.8416 / 33.8416]; of 15 in 30, symmetric
+    # about 1/2 with half-width z sqrt(1/120 + z^2/3600) / (1 + z^2/30) = 0.190034 / 1.128053 = 0.168462
+    assert probe["wilson"](0, 30) == pytest.approx((0.0, 0.113517), abs=1e-6)
+    assert probe["wilson"](15, 30) == pytest.approx((0.5 - 0.168462, 0.5 + 0.168462), abs=1e-5)

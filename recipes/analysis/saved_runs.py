@@ -26,7 +26,7 @@ from torchrl_reset_recipes.training.task_envs import task_dimensions
 
 __all__ = ["SavedRun", "load_agents", "load_replay", "latest_checkpoint", "run_config", "run_table", "logged_observations",
            "greedy_actions", "model_values", "trigger_probability", "ensemble_minimum", "new_reset_agent",
-           "offline_updates"]
+           "offline_updates", "CarriedNoise"]
 
 _ABSENT = object()
 
@@ -236,3 +236,23 @@ def offline_updates(agent: Agent, next_batch, updates: int, every: int, watch, *
         update(agent, next_batch(), agent.loss, release_order=release_order)
         if step % every == 0:
             watch(step)
+
+
+class CarriedNoise:
+    """The runs' own noise module (the recipe's ``with_exploration``, torchrl's ``OrnsteinUhlenbeckProcessModule``)
+    applied to one action at a time, its state carried from call to call in the private entries the collector
+    carries (``_ou_prev_noise``, ``_ou_steps``); after ``restart`` the next call sets ``is_init``, which starts the
+    noise again from zero, as the collector does at every episode's first step with ``exploration.restart: episode``."""
+
+    def __init__(self, module) -> None:
+        self.module, self.state, self.init = module, {}, True
+
+    def restart(self) -> None:
+        self.init = True
+
+    def __call__(self, action: torch.Tensor) -> torch.Tensor:
+        td = TensorDict({"action": action.clone(), "is_init": torch.tensor([self.init]), **self.state}, [])
+        td = self.module(td)
+        self.state = {key: td.get(key) for key in td.keys() if key.startswith("_")}
+        self.init = False
+        return td.get("action")

@@ -43,34 +43,13 @@ import argparse
 from pathlib import Path
 
 import torch
-from tensordict import TensorDict
 
 from torchrl_reset_envs import make_env
-from torchrl_reset_recipes.analysis.saved_runs import greedy_actions, load_agents, trigger_probability
+from torchrl_reset_recipes.analysis.saved_runs import CarriedNoise, greedy_actions, load_agents, trigger_probability
 from torchrl_reset_recipes.training.agents import with_exploration
 from torchrl_reset_recipes.training.task_envs import env_kwargs
 
 CASES = ("carried", "carried, clipped", "restarted", "none")
-
-
-class CarriedNoise:
-    """The runs' own noise module (the recipe's ``with_exploration``, torchrl's ``OrnsteinUhlenbeckProcessModule``)
-    applied to one action at a time, its state carried from call to call in the private entries the collector
-    carries (``_ou_prev_noise``, ``_ou_steps``); after ``restart`` the next call sets ``is_init``, which starts the
-    noise again from zero, as the collector does at every episode's first step with ``exploration.restart: episode``."""
-
-    def __init__(self, module) -> None:
-        self.module, self.state, self.init = module, {}, True
-
-    def restart(self) -> None:
-        self.init = True
-
-    def __call__(self, action: torch.Tensor) -> torch.Tensor:
-        td = TensorDict({"action": action.clone(), "is_init": torch.tensor([self.init]), **self.state}, [])
-        td = self.module(td)
-        self.state = {key: td.get(key) for key in td.keys() if key.startswith("_")}
-        self.init = False
-        return td.get("action")
 
 
 def run_case(case: str, saved, episodes: int, seed: int, burn_in: int) -> dict:

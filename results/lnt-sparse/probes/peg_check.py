@@ -26,7 +26,6 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from tensordict import TensorDict
 from torchrl.data import Bounded
 from torchrl.modules import OrnsteinUhlenbeckProcessModule
 
@@ -34,7 +33,7 @@ from torchrl_reset_envs import PegInsertionEnv
 from torchrl_reset_envs.peg import PEG_GOAL, PEG_START, _RANGES
 
 from torchrl_reset_recipes.analysis.runs import recipe_defaults
-from torchrl_reset_recipes.analysis.saved_runs import run_table
+from torchrl_reset_recipes.analysis.saved_runs import CarriedNoise, run_table
 
 CHECK = 0.2  # insert task: at the initial state when d_start < 0.2
 
@@ -46,12 +45,8 @@ def ou_actions(steps: int, dim: int) -> np.ndarray:
     noise = OrnsteinUhlenbeckProcessModule(
         spec=Bounded(-1.0, 1.0, (dim,)), eps_init=1.0, eps_end=1.0, annealing_num_steps=1, safe=False,
         theta=settings["exploration.theta"], sigma=settings["exploration.sigma"], dt=settings["exploration.dt"])
-    state, out = {"is_init": torch.tensor([True])}, []
-    for _ in range(steps):
-        td = noise(TensorDict({"action": torch.zeros(dim), **state}, []))
-        state = {key: td.get(key) for key in td.keys() if key.startswith("_")} | {"is_init": torch.tensor([False])}
-        out.append(td.get("action").numpy())
-    return np.array(out)
+    noise = CarriedNoise(noise)  # fed one action at a time, as the collector feeds it
+    return np.array([noise(torch.zeros(dim)).numpy() for _ in range(steps)])
 
 
 def rollout(env: PegInsertionEnv, actions: np.ndarray) -> tuple[float, float, float]:

@@ -1,10 +1,10 @@
 """LNT-sparse's trained Q-ensembles side by side: why the release's semantics keep the trigger firing.
 
     python results/lnt-sparse/probes/trained_ensembles.py \\
-        project=runs/lnt-sparse/peg_insertion_insert/lnt_sparse/seed0:step_0000025000 \\
+        project_seed0=runs/lnt-sparse/peg_insertion_insert/lnt_sparse/seed0:step_0000025000 \\
         release_seed0=runs/lnt-sparse/peg_insertion_insert/lnt_sparse_release/seed0:step_0000025000 \\
         release_seed1=runs/lnt-sparse/peg_insertion_insert/lnt_sparse_release/seed1:step_0000025000 \\
-        --triggers 20 --out results/lnt-sparse/probes/trained_ensembles_25k.csv
+        --triggers 20 --rollouts 50 --out results/lnt-sparse/probes/trained_ensembles_25k.csv
 
 Each ``NAME=RUN:CHECKPOINT`` names a run folder and one of its checkpoints (a folder name under the run's
 ``checkpoints/``, or a path). The probe loads each run's reset agent as that checkpoint holds it (the
@@ -21,19 +21,33 @@ The forward rows are the steps the forward agent took: a step the trigger stoppe
 so they leave out the states where the trigger fired. ``--triggers N`` adds those: each run's last N trigger
 states logged up to its checkpoint (``triggers.csv``), with the action its forward actor takes there at the
 checkpoint, without the exploration noise the trigger scored at the time.
+
+The reset agent does not update during a forward episode (only the agent of the phase under way does), so the
+trigger reads one ensemble through each forward episode: a checkpoint's ensemble is what the next forward
+episodes meet. ``--rollouts E`` plays them: for every pair (one run's forward agent, one run's ensemble), E
+forward episodes of H_f steps from the task's start, the forward actor's action plus the runs' own noise
+(``with_exploration``'s Ornstein-Uhlenbeck module, carried from episode to episode as in the runs, after
+``--burn-in`` steps from zero; the noisy action scored as drawn), the trigger armed with that ensemble and
+Q_thresh: the share of episodes it stops and the median of the steps taken before it does. Every pair runs on
+the same random draws (``--seed``: the env and the noise), so a difference between two pairs is theirs alone:
+the rows of one forward agent tell its ensembles apart, the columns of one ensemble its forward agents.
 """
 from __future__ import annotations
 
 import argparse
 import csv
+import math
 from pathlib import Path
 
 import torch
 from tensordict import TensorDict
 
-from torchrl_reset_recipes.analysis.saved_runs import (greedy_actions, load_agents, load_replay, logged_observations,
-                                                       model_values, run_table)
+from torchrl_reset_envs import make_env
+from torchrl_reset_recipes.analysis.saved_runs import (CarriedNoise, greedy_actions, load_agents, load_replay,
+                                                       logged_observations, model_values, run_table)
+from torchrl_reset_recipes.training.agents import with_exploration
 from torchrl_reset_recipes.training.reset_agents import LNTKind
+from torchrl_reset_recipes.training.task_envs import env_kwargs
 
 
 def parse(spec: str) -> tuple[str, Path, Path]:
@@ -62,6 +76,41 @@ def scores(model, rows, q_thresh: float, by_episode: bool = True) -> dict[str, f
             "mean_minus_min": float((mean - minimum).mean())}
 
 
+def wilson(k: int, n: int, z: float = 1.96) -> tuple[float, float]:
+    """The Wilson score interval (95% by default) of a share of ``k`` in ``n``."""
+    share = k / n
+    centre = (share + z * z / (2 * n)) / (1 + z * z / n)
+    half = z * math.sqrt(share * (1 - share) / n + z * z / (4 * n * n)) / (1 + z * z / n)
+    return max(0.0, centre - half), min(1.0, centre + half)
+
+
+def rollouts(saved, model, q_thresh: float, episodes: int, seed: int, burn_in: int) -> dict[str, float]:
+    """``episodes`` forward episodes of ``saved``'s forward agent with the trigger armed with ``model`` (its members'
+    minimum against ``q_thresh``), from the task's start, the runs' noise carried through them."""
+    env = make_env(saved.cfg.task.name, **env_kwargs(saved.cfg, for_eval=True))
+    env.set_seed(seed)
+    torch.manual_seed(seed)  # the noise module draws from torch's global generator, as in the runs
+    noise = CarriedNoise(with_exploration(saved.forward.actor, env.action_spec, saved.spec)[-1])
+    for _ in range(burn_in):
+        noise(torch.zeros(env.action_spec.shape))
+    stopped = []  # per triggered episode, the steps taken before the trigger
+    for _ in range(episodes):
+        td = env.reset()
+        for step in range(saved.spec.forward_horizon):
+            observation = td["observation"].reshape(1, -1)
+            action = noise(greedy_actions(saved.forward.actor, observation)[0])
+            if float(model_values(model, observation, action.reshape(1, -1)).min()) < q_thresh:
+                stopped.append(step)
+                break
+            td = env.step(td.set("action", action))["next"]
+            if bool(td["done"].any()):
+                break
+    env.close()
+    low, high = wilson(len(stopped), episodes)
+    return {"episodes": episodes, "triggered": len(stopped) / episodes, "triggered_low": low, "triggered_high": high,
+            "median_steps_before": float(torch.tensor(stopped, dtype=torch.float).median()) if stopped else float("nan")}
+
+
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                      formatter_class=argparse.RawDescriptionHelpFormatter,
@@ -70,6 +119,10 @@ def main(argv=None) -> None:
     parser.add_argument("--triggers", type=int, default=0,
                         help="also score each run's last N trigger states logged up to its checkpoint (triggers.csv) "
                              "with its forward actor's own action there, without noise")
+    parser.add_argument("--rollouts", type=int, default=0,
+                        help="also E forward episodes for every pair (forward agent, ensemble), the trigger armed")
+    parser.add_argument("--seed", type=int, default=0, help="the rollouts' env and noise (the same for every pair)")
+    parser.add_argument("--burn-in", type=int, default=1000, help="the rollouts' noise: steps from zero before them")
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--out", default=None, help="CSV of every (ensemble, rows) pair")
     args = parser.parse_args(argv)
@@ -77,12 +130,13 @@ def main(argv=None) -> None:
     runs = [parse(spec) for spec in args.ensembles]
     if len({name for name, _, _ in runs}) != len(runs):
         raise SystemExit("give each ensemble its own NAME")
-    models, forward, near, thresholds, triggered = {}, {}, {}, {}, {}
+    models, forward, near, thresholds, triggered, agents = {}, {}, {}, {}, {}, {}
     for name, run, checkpoint in runs:
-        saved = load_agents(run, checkpoint=checkpoint, agents=("forward", "reset") if args.triggers else ("reset",))
+        both = args.triggers or args.rollouts
+        saved = load_agents(run, checkpoint=checkpoint, agents=("forward", "reset") if both else ("reset",))
         if not isinstance(saved.spec.kind, LNTKind):
             raise SystemExit(f"{run} is a run of {saved.spec.kind.name}: this probe reads LNT's Q-ensembles")
-        models[name], thresholds[name] = saved.reset.model, float(saved.spec.trigger_threshold)
+        models[name], thresholds[name], agents[name] = saved.reset.model, float(saved.spec.trigger_threshold), saved
         rows = []
         for agent in ("forward", "reset"):
             rb = load_replay(run, agent, checkpoint=saved.checkpoint)
@@ -118,9 +172,24 @@ def main(argv=None) -> None:
         flagged = "" if r["episodes_flagged"] != r["episodes_flagged"] else f"{r['episodes_flagged']:.0%}"
         print(f"| {r['ensemble']} | {r['scored_on']} | {r['rows']} | {r['min_mean']:.3f} | {r['below_q_thresh']:.1%} | "
               f"{flagged} | {r['member_mean']:.3f} | {r['member_std']:.3f} | {r['mean_minus_min']:.3f} |")
+    if args.rollouts:
+        print(f"\nForward episodes with the trigger armed ({args.rollouts} per pair, H_f {saved.spec.forward_horizon}, "
+              f"seed {args.seed}): the share the trigger stopped [Wilson 95% interval] (the median of the steps taken "
+              "before it)")
+        print("| forward agent | " + " | ".join(f"{name}'s ensemble" for name in models) + " |")
+        print("|---|" + "---|" * len(models))
+        for name, saved in agents.items():
+            cells = []
+            for ensemble, model in models.items():
+                r = rollouts(saved, model, q_thresh, args.rollouts, args.seed, args.burn_in)
+                records.append({"ensemble": ensemble, "scored_on": f"{name}'s forward agent, trigger armed", **r})
+                median = "-" if r["median_steps_before"] != r["median_steps_before"] else f"{r['median_steps_before']:.0f}"
+                cells.append(f"{r['triggered']:.0%} [{r['triggered_low']:.0%}, {r['triggered_high']:.0%}] ({median})")
+            print(f"| {name}'s | " + " | ".join(cells) + " |", flush=True)
     if args.out:
+        fields = list(dict.fromkeys(key for r in records for key in r))
         with open(args.out, "w", newline="") as f:
-            writer = csv.DictWriter(f, fieldnames=list(records[0]))
+            writer = csv.DictWriter(f, fieldnames=fields)
             writer.writeheader()
             writer.writerows(records)
         print(f"wrote {args.out}")
