@@ -115,7 +115,7 @@ def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                      formatter_class=argparse.RawDescriptionHelpFormatter,
                                      epilog=__doc__.split("\n\n", 1)[1])
-    parser.add_argument("ensembles", nargs="+", help="NAME=RUN:CHECKPOINT, two or more")
+    parser.add_argument("ensembles", nargs="+", help="NAME=RUN:CHECKPOINT, one for each run to compare")
     parser.add_argument("--triggers", type=int, default=0,
                         help="also score each run's last N trigger states logged up to its checkpoint (triggers.csv) "
                              "with its forward actor's own action there, without noise")
@@ -126,6 +126,8 @@ def main(argv=None) -> None:
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--out", default=None, help="CSV of every (ensemble, rows) pair")
     args = parser.parse_args(argv)
+    if min(args.triggers, args.rollouts, args.burn_in) < 0:
+        parser.error("--triggers, --rollouts and --burn-in must be at least 0")
     torch.set_num_threads(args.threads)
     runs = [parse(spec) for spec in args.ensembles]
     if len({name for name, _, _ in runs}) != len(runs):
@@ -153,6 +155,9 @@ def main(argv=None) -> None:
                                               "action": greedy_actions(saved.forward.actor, states)}, [len(states)])
                 print(f"  its last {len(logged)} trigger states: logged at {logged[0]['frames']}-{logged[-1]['frames']} "
                       "steps", flush=True)
+    tasks = {saved.cfg.task.name for saved in agents.values()}
+    if len(tasks) != 1:
+        raise SystemExit(f"the runs are of different tasks ({', '.join(sorted(tasks))}): compare runs of one task")
     if len(set(thresholds.values())) != 1:
         raise SystemExit(f"the runs' Q_thresh differ ({thresholds}): their triggers cannot be compared on one scale")
     q_thresh = next(iter(thresholds.values()))
