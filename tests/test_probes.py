@@ -439,13 +439,16 @@ def test_carried_noise_carries_the_runs_ornstein_uhlenbeck_noise():
     assert abs(float(walk(torch.zeros(20000)).var()) - 0.2) < 0.01  # 20,000 components: the sample variance within 5%
 
 
-def test_trained_ensembles_scores_rows_as_the_trigger_would():
-    """Four rows of two forward episodes, three members' Q-values chosen by hand, Q_thresh 0.1: the minima are
+def test_ensemble_scores_scores_rows_as_the_trigger_would():
+    """saved_runs.ensemble_scores (trained_ensembles.py's table, ensemble_minimum's parts) on four rows of two forward episodes, three members' Q-values chosen by hand, Q_thresh 0.1: the minima are
     1, 0.05, 4 and 2 (mean 1.7625), one row below Q_thresh (25%), in the first episode (1 of 2 episodes); the
     members' means 2, 0.2, 4, 3 (mean 2.3); their standard deviations 1, 0.15, 0, 1 (mean 0.5375); mean - minimum
-    1, 0.15, 0, 1 (mean 0.5375)."""
+    1, 0.15, 0, 1 (mean 0.5375). ensemble_minimum on rows 0-1 (forward) and 2-3: minima 1, 0.05 (mean 0.525, half
+    below), std 1, 0.15 (mean 0.575); minima 4, 2 (mean 3, none below)."""
     import torch
     from tensordict import TensorDict
+
+    from torchrl_reset_recipes.analysis.saved_runs import ensemble_minimum, ensemble_scores
 
     probe = runpy.run_path(str(ROOT / "results" / "lnt-sparse" / "probes" / "trained_ensembles.py"))
     q = torch.tensor([[1.0, 2.0, 3.0], [0.05, 0.2, 0.35], [4.0, 4.0, 4.0], [2.0, 3.0, 4.0]])
@@ -455,12 +458,16 @@ def test_trained_ensembles_scores_rows_as_the_trigger_would():
 
     rows = TensorDict({"observation": torch.arange(4.0).reshape(4, 1), "action": torch.zeros(4, 1),
                        "collector": {"traj_ids": torch.tensor([0, 0, 1, 1])}}, [4])
-    got = probe["scores"](model, rows, 0.1)
+    got = ensemble_scores(model, rows, 0.1, rows["collector", "traj_ids"])
     expected = {"rows": 4, "min_mean": 1.7625, "below_q_thresh": 0.25, "episodes_flagged": 0.5, "member_mean": 2.3,
                 "member_std": 0.5375, "mean_minus_min": 0.5375}
     assert got == pytest.approx(expected)
-    unflagged = probe["scores"](model, rows.exclude("collector"), 0.1, by_episode=False)  # rows without episodes
+    unflagged = ensemble_scores(model, rows.exclude("collector"), 0.1)  # rows without episodes
     assert math.isnan(unflagged["episodes_flagged"]) and unflagged["below_q_thresh"] == 0.25
+    # ensemble_minimum: the first two rows as the forward rows, the last two as those one step from success
+    assert ensemble_minimum(model, rows[:2], rows[2:], 0.1) == pytest.approx(
+        {"forward_min_mean": 0.525, "forward_below_q_thresh": 0.5, "forward_member_std": 0.575,
+         "near_success_min_mean": 3.0, "near_success_below_q_thresh": 0.0})
     with pytest.raises(SystemExit, match="NAME=RUN:CHECKPOINT"):
         probe["parse"]("no-checkpoint-named")
     # the Wilson interval of 0 in 30 at 95%: [0, z^2 / (n + z^2)] = [0, 3.8416 / 33.8416]; of 15 in 30, symmetric

@@ -25,7 +25,7 @@ from torchrl_reset_recipes.training.checkpoints import MANIFEST, CheckpointDamag
 from torchrl_reset_recipes.training.task_envs import task_dimensions
 
 __all__ = ["SavedRun", "load_agents", "load_replay", "latest_checkpoint", "run_config", "run_table", "logged_observations",
-           "greedy_actions", "model_values", "trigger_probability", "ensemble_minimum", "new_reset_agent",
+           "greedy_actions", "model_values", "trigger_probability", "ensemble_scores", "ensemble_minimum", "new_reset_agent",
            "offline_updates", "CarriedNoise"]
 
 _ABSENT = object()
@@ -203,20 +203,31 @@ def model_values(model, observation: torch.Tensor, action: torch.Tensor, key: st
     return torch.cat(values)
 
 
+def ensemble_scores(model, rows: TensorDict, q_thresh: float, episodes: torch.Tensor | None = None) -> dict[str, float]:
+    """LNT's trigger's view of ``rows`` (observation, action): from the members' Q-values per row, their minimum (the
+    trigger's score: its mean and the share of rows below ``q_thresh``, where the trigger fires), the members' mean,
+    their spread (standard deviation across members) and the mean minus the minimum, each averaged over the rows;
+    given each row's episode (``episodes``, such as the collector's ``traj_ids``), also the share of the episodes with
+    a row below ``q_thresh`` (else NaN)."""
+    q = model_values(model, rows["observation"], rows["action"])
+    minimum, mean = q.min(-1).values, q.mean(-1)
+    below = minimum < q_thresh
+    flagged = (float("nan") if episodes is None else  # episodes with a row the trigger would stop at
+               episodes[below].unique().numel() / episodes.unique().numel())
+    return {"rows": int(q.shape[0]), "min_mean": float(minimum.mean()), "below_q_thresh": float(below.float().mean()),
+            "episodes_flagged": flagged, "member_mean": float(mean.mean()), "member_std": float(q.std(-1).mean()),
+            "mean_minus_min": float((mean - minimum).mean())}
+
+
 def ensemble_minimum(model, forward: TensorDict, near: TensorDict, q_thresh: float) -> dict[str, float]:
     """What LNT's trigger reads, the ensemble's minimum over its members, on two sets of rows (observation,
     action): ``forward`` (the states the trigger scores) and ``near`` (reset rows one step from success). Their
-    means, the shares below ``q_thresh`` (where the trigger fires), and the members' spread on ``forward``."""
-    values = {name: model_values(model, rows["observation"], rows["action"]) for name, rows in
-              (("forward", forward), ("near_success", near))}
-    stats = {}
-    for name, q in values.items():
-        minimum = q.min(-1).values
-        stats[f"{name}_min_mean"] = float(minimum.mean())
-        stats[f"{name}_below_q_thresh"] = float((minimum < q_thresh).float().mean())
-        if name == "forward":
-            stats["forward_member_std"] = float(q.std(-1).mean())
-    return stats
+    means, the shares below ``q_thresh`` (where the trigger fires), and the members' spread on ``forward``
+    (:func:`ensemble_scores` of each)."""
+    on_forward, on_near = ensemble_scores(model, forward, q_thresh), ensemble_scores(model, near, q_thresh)
+    return {"forward_min_mean": on_forward["min_mean"], "forward_below_q_thresh": on_forward["below_q_thresh"],
+            "forward_member_std": on_forward["member_std"], "near_success_min_mean": on_near["min_mean"],
+            "near_success_below_q_thresh": on_near["below_q_thresh"]}
 
 
 def new_reset_agent(spec: RunSpec, seed: int) -> Agent:

@@ -43,8 +43,8 @@ import torch
 from tensordict import TensorDict
 
 from torchrl_reset_envs import make_env
-from torchrl_reset_recipes.analysis.saved_runs import (CarriedNoise, greedy_actions, load_agents, load_replay,
-                                                       logged_observations, model_values, run_table)
+from torchrl_reset_recipes.analysis.saved_runs import (CarriedNoise, ensemble_scores, greedy_actions, load_agents,
+                                                       load_replay, logged_observations, model_values, run_table)
 from torchrl_reset_recipes.training.agents import with_exploration
 from torchrl_reset_recipes.training.reset_agents import LNTKind
 from torchrl_reset_recipes.training.task_envs import env_kwargs
@@ -60,20 +60,6 @@ def parse(spec: str) -> tuple[str, Path, Path]:
     if not checkpoint.exists() and (run / "checkpoints" / checkpoint).exists():
         checkpoint = run / "checkpoints" / checkpoint  # a checkpoint's name under the run's checkpoints/
     return name, run, checkpoint
-
-
-def scores(model, rows, q_thresh: float, by_episode: bool = True) -> dict[str, float]:
-    """The trigger's view of ``rows`` (observation, action) under ``model``, from the members' Q-values per row;
-    ``by_episode``: also the share of the rows' episodes with a row below ``q_thresh``."""
-    q = model_values(model, rows["observation"], rows["action"])
-    minimum, mean = q.min(-1).values, q.mean(-1)
-    below = minimum < q_thresh
-    episodes = rows["collector", "traj_ids"].reshape(-1) if by_episode else None
-    flagged = (float("nan") if episodes is None else  # episodes with a row the trigger would stop at
-               episodes[below].unique().numel() / episodes.unique().numel())
-    return {"rows": int(q.shape[0]), "min_mean": float(minimum.mean()), "below_q_thresh": float(below.float().mean()),
-            "episodes_flagged": flagged, "member_mean": float(mean.mean()), "member_std": float(q.std(-1).mean()),
-            "mean_minus_min": float((mean - minimum).mean())}
 
 
 def wilson(k: int, n: int, z: float = 1.96) -> tuple[float, float]:
@@ -165,12 +151,14 @@ def main(argv=None) -> None:
     records = []
     for ensemble, model in models.items():
         for rows_of, rows in forward.items():
-            records.append({"ensemble": ensemble, "scored_on": f"{rows_of}'s forward rows", **scores(model, rows, q_thresh)})
+            episodes = rows["collector", "traj_ids"].reshape(-1)
+            records.append({"ensemble": ensemble, "scored_on": f"{rows_of}'s forward rows",
+                            **ensemble_scores(model, rows, q_thresh, episodes)})
         for rows_of, rows in triggered.items():
             records.append({"ensemble": ensemble, "scored_on": f"{rows_of}'s trigger states, its actor's action",
-                            **scores(model, rows, q_thresh, by_episode=False)})
+                            **ensemble_scores(model, rows, q_thresh)})
         records.append({"ensemble": ensemble, "scored_on": "its own rows one step from success",
-                        **scores(model, near[ensemble], q_thresh, by_episode=False)})
+                        **ensemble_scores(model, near[ensemble], q_thresh)})
     print("\n| ensemble | scored on | rows | minimum (the trigger's score) | below Q_thresh | episodes with one "
           "| members' mean | members' std | mean - minimum |\n|---|---|---|---|---|---|---|---|---|")
     for r in records:
