@@ -28,19 +28,17 @@ import sys
 from pathlib import Path
 
 import hydra
-import torch
 from omegaconf import DictConfig
-from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from torchrl_reset import DualCollector
 from torchrl_reset_envs.ur3_backends import RobotFault
-from torchrl_reset_recipes.training.agents import Agent
 from torchrl_reset_recipes.training.checkpoints import CheckpointDamaged, Checkpoints
 from torchrl_reset_recipes.training.config_checks import RETIRED_KEYS, ConfigError, retired_key_problem, validate
 from torchrl_reset_recipes.training.learner import NonFiniteLoss
 from torchrl_reset_recipes.training.run_folder import RunFolderBusy, RunInterrupted, run_folder_lock, stop_on_signals
 from torchrl_reset_recipes.training.run_spec import RunSpec, run_spec
 from torchrl_reset_recipes.training.single_run import RobotStopped, TrainingDiverged, build_run, set_up_process
+from torchrl_reset_recipes.training.updates import update
 
 log = logging.getLogger("torchrl_reset.train")
 
@@ -115,51 +113,6 @@ def finished_summary(spec: RunSpec) -> dict | None:
     if summary.get("finished") and saved == summary.get("steps") and saved >= int(cfg.total_steps):
         return summary
     return None
-
-
-def update(agent: Agent, sample, loss_module, *, release_order: bool) -> dict[str, float]:
-    """One update of ``agent`` (DDPG, or RCE / LNT for the reset agent) on ``sample``; returns its losses
-    (``loss_actor`` and the critic's, ``agent.critic_loss``: ``loss_value`` or ``loss_classifier``).
-
-    ``release_order`` (``update_order: release``, the authors' release, docs/method.md section 9): a step of
-    the critic (classifiers) on its loss, then a step of the actor on its loss computed with the updated
-    critic, on as many rows drawn with replacement from the critic's batch. Otherwise one step on the sum of
-    both losses computed together by ``loss_module`` (the agent's loss, or its compiled form)."""
-    terms = agent.actor_terms  # what reset.actor adds to the actor's loss (None: the release, nothing)
-    if release_order:
-        critic_loss, _ = getattr(agent.loss, agent.critic_loss)(sample)
-        optimizer_step(agent, critic_loss, agent.critic_loss)
-        if getattr(agent.loss, "draws_actor_rows", False):  # it draws its rows from the members' own batches
-            actor_batch = sample
-        else:
-            rows = torch.randint(sample.shape[0], (sample.shape[0],), device=sample.device)
-            actor_batch = sample[rows]
-        if terms is None:
-            actor_loss, _ = agent.loss.loss_actor(actor_batch)
-        else:  # a tanh-Gaussian actor's loss takes sampled actions (reparameterised)
-            with set_exploration_type(ExplorationType.RANDOM if terms.stochastic else ExplorationType.DETERMINISTIC):
-                actor_loss, _ = agent.loss.loss_actor(actor_batch)
-            actor_loss = actor_loss + terms(actor_batch)
-        optimizer_step(agent, actor_loss, "loss_actor")
-        losses = {"loss_actor": actor_loss, agent.critic_loss: critic_loss}
-    else:
-        out = loss_module(sample)
-        losses = {"loss_actor": out["loss_actor"], agent.critic_loss: out[agent.critic_loss]}
-        if terms is not None:
-            losses["loss_actor"] = losses["loss_actor"] + terms(sample)
-        optimizer_step(agent, losses["loss_actor"] + losses[agent.critic_loss], *losses, values=losses)
-    agent.targets.step()  # the soft target update: target <- (1 - tau) target + tau network
-    return {name: float(value.detach()) for name, value in losses.items()}
-
-
-def optimizer_step(agent: Agent, loss: torch.Tensor, *names: str, values: dict | None = None) -> None:
-    """Backward and one optimizer step on ``loss``: only the parameters it reaches have gradients (the
-    others' are None after ``zero_grad``), so Adam moves only those. A non-finite loss changes nothing."""
-    if not torch.isfinite(loss):
-        raise NonFiniteLoss(", ".join(f"{n}={float((values or {n: loss})[n].detach())}" for n in names))
-    agent.optimizer.zero_grad()
-    loss.backward()
-    agent.optimizer.step()
 
 
 # Hydra makes its run folder and writes its own files there (.hydra/, its log) before the recipe sees the

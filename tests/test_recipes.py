@@ -590,7 +590,7 @@ def test_the_summary_names_the_processor_kind_a_run_reproduces_on(tmp_path):
 def test_release_order_steps_the_critic_then_the_actor_with_it_on_rows_drawn_again(tmp_path, release_order):
     """update_order=release (train.py's update): a critic step, then an actor step whose loss uses the updated classifiers, on
     B rows drawn with replacement from the batch. Worked out here with plain SGD steps, by hand."""
-    from torchrl_reset_recipes.train import update
+    from torchrl_reset_recipes.training.updates import update
 
     cfg = config(tmp_path, "algo=ours", "reset_actor=release")  # the deterministic actor, worked out by hand below
     spec = make_env("peg_insertion_insert").action_spec

@@ -17,7 +17,7 @@ from torchrl.data import ReplayBuffer
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from torchrl_reset import success_probability
-from torchrl_reset_recipes.train import update
+from torchrl_reset_recipes.training.updates import update
 from torchrl_reset_recipes.training.agents import Agent, make_forward_agent, make_reset_agent
 from torchrl_reset_recipes.training.buffers import make_buffers
 from torchrl_reset_recipes.training.run_spec import RunSpec, run_spec
@@ -239,7 +239,7 @@ def new_reset_agent(spec: RunSpec, seed: int) -> Agent:
 
 
 def offline_updates(agent: Agent, next_batch, updates: int, every: int, watch, *, release_order: bool = True) -> None:
-    """``updates`` of the recipe's update of ``agent`` (``train.update``), each on the batch ``next_batch()``
+    """``updates`` of the recipe's update of ``agent`` (``updates.update``), each on the batch ``next_batch()``
     returns, and ``watch(step)`` before the first and after every ``every``-th: how the probes train an agent
     offline on a run's saved rows and record its course."""
     watch(0)

@@ -10,7 +10,7 @@ policy already leans, and the actor, climbing it, leans further. The test change
 For each seed: the main job's settings (``preset=quick task=ball_in_cup_catch``, one torch thread, the
 reference loss ``speed.accelerate=false``) run to ``--steps`` steps and are checkpointed (the reset agent has
 made its first updates; its actor has not moved far yet). From that checkpoint, five copies of the reset
-agent take ``--updates`` more updates with the recipe's update (``train.update``, the release's order) on
+agent take ``--updates`` more updates with the recipe's update (``updates.update``, the release's order) on
 the same batches (the same sampler stream), differing only in the example term's action (or, in the
 last, in the replay term's):
 
@@ -43,6 +43,7 @@ ROOT = Path(__file__).resolve().parents[3]
 from torchrl_reset_recipes import train
 from torchrl_reset_recipes.training.run_spec import run_spec
 from torchrl_reset_recipes.training.single_run import build_run
+from torchrl_reset_recipes.training.updates import update
 
 VARIANTS = ("pi(s*)", "pi(s*) + replay noise", "uniform", "replay actions shuffled", "uniform and shuffled")
 
@@ -135,7 +136,7 @@ def main(argv=None) -> None:
                             print("| " + " | ".join(header) + " |\n|" + "---|" * len(header))
                         print("| " + " | ".join(str(v) for v in row.values()) + " |", flush=True)
                     if u < args.updates:
-                        train.update(run.reset, run.learner.sample("reset"), run.reset.loss, release_order=True)
+                        update(run.reset, run.learner.sample("reset"), run.reset.loss, release_order=True)
             finally:
                 run.collector.shutdown()
                 run.eval_env.close()

@@ -1,0 +1,37 @@
+#!/usr/bin/env bash
+# Runs results/every-task/queue.txt on two lanes (or $1): each lane takes the next command that no lane has
+# taken in this launch. Finished runs return at once (resume=auto); a stopped run resumes from its checkpoint.
+# From the repository root, in its virtual environment:  bash results/every-task/lanes.sh [lanes]
+# Each command's output goes to runs/every-task/.queue/log.<line>; SIGTERM to a run checkpoints it and ends
+# its lane.
+set -u
+queue="$(dirname "$0")/queue.txt"
+lanes="${1:-2}"
+state=runs/every-task/.queue
+mkdir -p "$state"
+rm -rf "$state"/taken.*
+
+lane() {
+    while :; do
+        local picked="" n=0 cmd="" line
+        while IFS= read -r line; do
+            n=$((n + 1))
+            [[ -z "$line" || "$line" == \#* ]] && continue
+            mkdir "$state/taken.$n" 2>/dev/null || continue
+            picked=$n cmd=$line
+            break
+        done < "$queue"
+        [[ -z "$picked" ]] && { echo "lane $1: queue done"; return; }
+        echo "$(date -u +%FT%TZ) lane $1: line $picked: $cmd"
+        eval "$cmd" >> "$state/log.$picked" 2>&1
+        local rc=$?
+        echo "$(date -u +%FT%TZ) lane $1: line $picked ended with status $rc"
+        if [[ $rc -ge 128 ]]; then return; fi  # stopped by a signal (checkpointed): the lane stops too
+    done
+}
+
+for i in $(seq 1 "$lanes"); do
+    lane "$i" &
+    sleep 5
+done
+wait
