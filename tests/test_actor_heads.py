@@ -13,13 +13,13 @@ from tensordict import TensorDict
 from torchrl.data import Bounded
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
-from torchrl_reset.actor_heads import (EntropyBonus, InvertingGradientHead, InvertingGradients, actor_penalties,
-                                       saturation)
+from torchrl_reset.actor_heads import (InvertingGradientHead, InvertingGradients, InvertingHead, TanhHead,
+                                       TanhNormalHead, Temperature, actor_penalties, head_from_settings, saturation)
 
 RECIPES = Path(__file__).resolve().parents[1] / "recipes"
 
 from torchrl_reset_recipes import train
-from torchrl_reset_recipes.training.agents import ActorTerms, make_actor, normalised_action
+from torchrl_reset_recipes.training.agents import make_actor
 from torchrl_reset_recipes.training.config_checks import ConfigError, validate
 from torchrl_reset_recipes.training.records import Saturation
 from helpers import quick_config  # noqa: E402
@@ -62,20 +62,28 @@ def test_penalties_are_the_mean_squares_and_their_gradient_pulls_towards_zero():
     assert float(actor_penalties(u, a)) == 0.0
 
 
-def test_entropy_bonus_fixed_and_learned_temperature():
-    fixed = EntropyBonus(alpha=1e-4)
+def test_temperature_fixed_and_learned():
     log_prob = torch.tensor([-1.0, -3.0])
-    assert float(fixed(log_prob)) == pytest.approx(1e-4 * -2.0)
-    assert not list(fixed.parameters())  # a fixed alpha is no parameter
-    learned = EntropyBonus(alpha=0.5, target_entropy=-2.0)
-    value = learned(log_prob)
-    # alpha * mean(log pi) - log(alpha) * mean(log pi + target) = 0.5 * -2 - log(0.5) * (-4)
-    assert float(value) == pytest.approx(-1.0 + 4 * math.log(0.5))
+    fixed = Temperature(1e-4, fixed_alpha=True)
+    assert float(fixed.actor_term(log_prob)) == pytest.approx(1e-4 * -2.0)  # alpha * mean(log pi)
+    assert float(fixed.loss(log_prob)) == 0.0 and not list(fixed.parameters())  # a fixed alpha is no parameter
+    learned = Temperature(0.5, target_entropy=-2.0)
+    assert float(learned.actor_term(log_prob)) == pytest.approx(0.5 * -2.0)
+    value = learned.loss(log_prob)
+    # -mean(log alpha * (log pi + target)) = -log(0.5) * (-2 - 2)
+    assert float(value) == pytest.approx(4 * math.log(0.5))
     value.backward()
     # d/d log_alpha = -mean(log pi + target) = 4 > 0: the entropy (2) is above the target (-2), alpha goes down
     assert float(learned.log_alpha.grad) == pytest.approx(4.0)
-    with pytest.raises(ValueError, match="alpha must be positive"):
-        EntropyBonus(alpha=0.0)
+    # "auto" is -dim(A); bounds clamp log alpha where it is used
+    assert Temperature(1.0, action_dim=3).target_entropy == -3.0
+    bounded = Temperature(1.0, target_entropy=0.0, max_alpha=0.5)
+    assert float(bounded.alpha) == pytest.approx(0.5)
+    for bad, message in ((dict(alpha_init=0.0), "alpha_init must be positive"),
+                         (dict(alpha_init=1.0), "pass action_dim"),
+                         (dict(alpha_init=1.0, min_alpha=2.0, max_alpha=1.0, target_entropy=0.0), "must not exceed")):
+        with pytest.raises(ValueError, match=message):
+            Temperature(**bad)
 
 
 def test_saturation_counts_components_beyond_099_of_the_bound():
@@ -87,8 +95,9 @@ def test_saturation_counts_components_beyond_099_of_the_bound():
     fields = Saturation.fields(window)
     assert fields["reset_saturation"] == 0.5 and fields["reset_preact_abs"] == pytest.approx(9.1 / 4)
     assert math.isnan(fields["forward_saturation"])  # no forward step in this window
-    # the inverting head's normalised action is its clipped output
-    assert normalised_action(torch.tensor([1.5, -0.2]), "inverting").tolist() == pytest.approx([1.0, -0.2])
+    # the inverting head's normalised action is its clipped output; the tanh heads' is tanh(u)
+    assert InvertingHead().normalised_action(torch.tensor([1.5, -0.2])).tolist() == pytest.approx([1.0, -0.2])
+    assert TanhHead().saturation(u) == TanhNormalHead().saturation(u) == (2, 4, pytest.approx(9.1))
 
 
 def _spec(low=-1.0, high=1.0):
@@ -114,13 +123,34 @@ def test_the_tanh_normal_head_samples_when_exploring_and_acts_tanh_loc_otherwise
     assert torch.allclose(drawn["action_log_prob"][close], gauss.sum(-1)[close], atol=1e-3)
 
 
-def test_actor_terms_add_the_penalty_on_the_actors_own_preactivation():
+def test_a_heads_penalty_is_on_the_actors_own_noiseless_preactivation():
     torch.manual_seed(0)
-    actor = make_actor(3, _spec(), [8], head="tanh")
-    terms = ActorTerms(actor, "tanh", preact_penalty=0.5, action_l2=0.0, entropy=None)
     sample = TensorDict(observation=torch.randn(16, 3), batch_size=[16])
+    head = TanhHead(preact_penalty=0.5)
+    actor = head.make_actor(3, _spec(), [8])
     u = actor(sample.clone())["action_preactivation"]
-    assert float(terms(sample)) == pytest.approx(0.5 * float(u.pow(2).mean()), rel=1e-6)
+    assert float(head.penalty(actor, sample)) == pytest.approx(0.5 * float(u.pow(2).mean()), rel=1e-6)
+    assert TanhHead().penalty(actor, sample) is None  # no penalty, no term
+    # the tanh-Gaussian's: its pre-activation is the Gaussian's location, the same with or without sampling
+    head = TanhNormalHead(action_l2=2.0)
+    actor = head.make_actor(3, _spec(), [8])
+    u = actor(sample.clone())["action_preactivation"]
+    with set_exploration_type(ExplorationType.RANDOM):
+        value = head.penalty(actor, sample)
+    assert float(value) == pytest.approx(2.0 * float(torch.tanh(u).pow(2).mean()), rel=1e-6)
+
+
+def test_heads_from_settings_and_what_each_asks_of_its_loss():
+    assert head_from_settings("tanh", preact_penalty=0.1, action_l2=0.0, entropy="auto").loss_kwargs() == {}
+    assert not head_from_settings("inverting").stochastic
+    learned = head_from_settings("tanh_normal", entropy="auto")
+    assert learned.stochastic and learned.loss_kwargs() == {"alpha_init": 0.01, "fixed_alpha": False,
+                                                            "target_entropy": "auto"}
+    assert head_from_settings("tanh_normal", entropy=1e-4).loss_kwargs()["fixed_alpha"] is True
+    with pytest.raises(ValueError, match="unknown actor head 'sigmoid'"):
+        head_from_settings("sigmoid")
+    with pytest.raises(ValueError, match="preact_penalty must be a number >= 0"):
+        TanhHead(preact_penalty=-1.0)
 
 
 def _config(tmp_path, *overrides):
@@ -149,8 +179,8 @@ def test_each_remedy_trains_and_every_run_logs_saturation(tmp_path, algo, remedy
     assert set(saved) == {"last_window", "last_quarter"} and "reset_saturation" in saved["last_quarter"]
     if "reset.actor.entropy=auto" in remedy:  # the temperature is learned, saved with the loss
         state = torch.load(next((tmp_path / "checkpoints").glob("step_*/state.pt")), weights_only=False)
-        assert "entropy_bonus.log_alpha" in state["reset_loss"]
-        assert state["reset_loss"]["entropy_bonus.log_alpha"] != pytest.approx(math.log(0.01))
+        assert "temperature.log_alpha" in state["reset_loss"]
+        assert state["reset_loss"]["temperature.log_alpha"] != pytest.approx(math.log(0.01))
 
 
 @pytest.mark.parametrize("overrides, message", [

@@ -22,14 +22,16 @@ from __future__ import annotations
 import torch
 from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import TensorDictModuleBase
+from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl.objectives import LossModule
 
 from .ensemble import EnsembleValueOperator
+from .stochastic_actor import StochasticActorMixin
 
 __all__ = ["EnsembleDDPGLoss"]
 
 
-class EnsembleDDPGLoss(LossModule):
+class EnsembleDDPGLoss(StochasticActorMixin, LossModule):
     """DDPG on an :class:`~torchrl_reset.EnsembleValueOperator` of K Q-functions, with the release's ensemble
     semantics as options (see the module's docstring).
 
@@ -45,6 +47,9 @@ class EnsembleDDPGLoss(LossModule):
         reward_bounds (tuple, optional): ``(low, high)`` of the rewards; the targets are clipped to
             ``[low, high] / (1 - gamma)``.
         reward_key (str): the reward entry under ``"next"``, ``[*batch, K]`` or ``[*batch, 1]``. Defaults to ``"reward"``.
+        alpha_init, fixed_alpha, target_entropy, min_alpha, max_alpha, action_spec: a stochastic actor's
+            temperature, as :class:`~torchrl_reset.RCELoss` (its ``log pi`` from a sample of its own on the
+            whole input).
 
     Examples:
         >>> import torch
@@ -70,7 +75,9 @@ class EnsembleDDPGLoss(LossModule):
 
     def __init__(self, actor_network: TensorDictModuleBase, value_network: EnsembleValueOperator, *,
                  gamma: float = 0.99, independent_batches: bool = False, member_actor_gradient: bool = False,
-                 reward_bounds: tuple[float, float] | None = None, reward_key: str = "reward") -> None:
+                 reward_bounds: tuple[float, float] | None = None, reward_key: str = "reward",
+                 alpha_init: float = 0.01, fixed_alpha: bool = False, target_entropy="auto",
+                 min_alpha: float | None = None, max_alpha: float | None = None, action_spec=None) -> None:
         super().__init__()
         if not isinstance(value_network, EnsembleValueOperator):
             raise TypeError(f"value_network must be an EnsembleValueOperator, got {type(value_network).__name__}.")
@@ -86,6 +93,9 @@ class EnsembleDDPGLoss(LossModule):
         self._observation_keys = list(value_network.in_keys[:-1])
         self.convert_to_functional(actor_network, "actor_network", create_target_params=True)
         self.convert_to_functional(value_network, "value_network", create_target_params=True)
+        self._init_temperature(actor_network, alpha_init=alpha_init, fixed_alpha=fixed_alpha,
+                               target_entropy=target_entropy, min_alpha=min_alpha, max_alpha=max_alpha,
+                               action_spec=action_spec, entropy_sample="own")
 
     @property
     def draws_actor_rows(self) -> bool:
@@ -146,13 +156,25 @@ class EnsembleDDPGLoss(LossModule):
     def loss_actor(self, tensordict: TensorDictBase) -> tuple[torch.Tensor, dict]:
         """``-mean Q(s, pi(s))``: the mean over the members, or with ``member_actor_gradient`` each row through
         one member (``B`` rows drawn with replacement from a ``[K, B]`` batch, each with its batch's member;
-        on a ``[B]`` batch a member drawn per row)."""
+        on a ``[B]`` batch a member drawn per row). With a stochastic actor: on reparameterised samples, plus
+        ``alpha * mean(log pi)`` (metadata ``log_prob``, ``entropy``, ``alpha``)."""
+        if not self.stochastic:
+            return self._value_actor_loss(tensordict), {}
+        with set_exploration_type(ExplorationType.RANDOM):
+            value_loss = self._value_actor_loss(tensordict)
+            return self._entropy_terms(value_loss, None, lambda: self._act_td(tensordict, self.actor_network_params))
+
+    def _act_td(self, tensordict: TensorDictBase, params) -> TensorDictBase:
+        with params.to_module(self.actor_network):
+            return self.actor_network(tensordict.select(*self.actor_network.in_keys))
+
+    def _value_actor_loss(self, tensordict: TensorDictBase) -> torch.Tensor:
         self._check(tensordict)
         params = self.value_network_params.detach()
         if not self.member_actor_gradient:
             states = tensordict.reshape(-1)
             values = self._values(states, self._act(states, self.actor_network_params), params)  # [K, N]
-            return -values.mean(), {}
+            return -values.mean()
         if self.independent_batches:
             k, b = tensordict.shape
             flat = torch.randint(k * b, (b,), device=tensordict.device)
@@ -161,12 +183,16 @@ class EnsembleDDPGLoss(LossModule):
             states = tensordict
             members = torch.randint(self.num_members, (states.shape[0],), device=tensordict.device)
         values = self._values(states, self._act(states, self.actor_network_params), params)  # [K, B]
-        return -values.gather(0, members.unsqueeze(0)).mean(), {}
+        return -values.gather(0, members.unsqueeze(0)).mean()
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         loss_value, meta = self.loss_value(tensordict)
-        loss_actor, _ = self.loss_actor(tensordict)
+        loss_actor, actor_meta = self.loss_actor(tensordict)
         out = TensorDict(meta, batch_size=[])
         out.set("loss_value", loss_value)
         out.set("loss_actor", loss_actor)
+        if self.stochastic:
+            out.set("loss_alpha", self.loss_alpha(actor_meta["log_prob"]))
+            out.set("alpha", actor_meta["alpha"])
+            out.set("entropy", actor_meta["entropy"])
         return out

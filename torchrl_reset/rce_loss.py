@@ -8,13 +8,19 @@ import torch.nn.functional as F
 from tensordict import TensorDict, TensorDictBase, TensorDictParams
 from tensordict.nn import TensorDictModule, TensorDictModuleBase
 from tensordict.utils import NestedKey
-from torchrl.envs.utils import set_exploration_type
+from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl.objectives import LossModule
 
 from ._validation import check_int
 from .ensemble import EnsembleValueOperator, success_probability
+from .stochastic_actor import StochasticActorMixin
 
-__all__ = ["RCELoss", "rce_label", "label_weight", "shared_label", "classifier_loss", "actor_loss"]
+#: the action the classifiers' labels (and the success examples' pairs) take: ``deterministic``, the actor's
+#: noiseless action (a tanh-Gaussian's ``tanh(loc)`` onto the box); ``sample``, a draw of a stochastic actor
+#: (RCE's original code)
+LABEL_ACTIONS = ("deterministic", "sample")
+
+__all__ = ["RCELoss", "LABEL_ACTIONS", "rce_label", "label_weight", "shared_label", "classifier_loss", "actor_loss"]
 
 
 def _as_tuple(key: NestedKey) -> tuple[str, ...]:
@@ -84,8 +90,9 @@ def actor_loss(actor_logits: torch.Tensor) -> torch.Tensor:
     return -torch.sigmoid(actor_logits).amin(-1).mean(-1)
 
 
-class RCELoss(LossModule):
-    """The reset agent's loss: an RCE-trained classifier ensemble and a DDPG-style actor.
+class RCELoss(StochasticActorMixin, LossModule):
+    """The reset agent's loss: an RCE-trained classifier ensemble and its actor, deterministic (DDPG-style,
+    the paper's) or stochastic (RCE's tanh-Gaussian, SAC's temperature: the project's reset actor).
 
     Paper: Kim et al. (RA-L 2022), Eq. 2-3 and "Implementation details", with the facts of the
     authors' implementation (docs/method.md section 3). For replay transitions ``(s_t, a_t, s_{t+1},
@@ -119,8 +126,13 @@ class RCELoss(LossModule):
     entries are the actor's ``in_keys`` and the classifier's observation keys.
 
     Args:
-        actor_network (TensorDictModule): the reset policy, writing the action key (deterministic:
-            the loss always runs in deterministic exploration mode).
+        actor_network (TensorDictModule): the reset policy, writing the action key. Deterministic (a
+            ``tanh`` head, :class:`~torchrl_reset.actor_heads.TanhHead`), or stochastic: a torchrl
+            ``ProbabilisticActor`` (:class:`~torchrl_reset.actor_heads.TanhNormalHead`; any distribution with
+            ``rsample`` and log-probabilities, written at ``action_log_prob``). With a stochastic actor the
+            loss follows ``SACLoss``: the actor's loss scores reparameterised samples and adds
+            ``alpha * mean(log pi(a|s))``, the output gains ``loss_alpha``, ``alpha`` and ``entropy``, and the
+            temperature (``loss.temperature``) is a parameter of the loss.
         classifier_network (TensorDictModuleBase): the success-classifier ensemble, such as
             :class:`~torchrl_reset.EnsembleValueOperator`. The contract: it reads the state entries and
             the action key (its ``in_keys``) and writes the K members' logits, shaped ``[*batch, K]``,
@@ -136,6 +148,21 @@ class RCELoss(LossModule):
         n_steps (int): n of the n-step label. Defaults to 10.
         clip_target_values (bool): clip the target classifier values to [0, 0.5] before they become
             labels. Defaults to ``False`` (the release: only the label is clipped, at 0.5).
+        label_action (str): the action ``pi(s)`` the labels take at ``s_{t+1}`` and ``s_{t+n}``, and the
+            success examples' pairs at ``s*``: ``"deterministic"`` (default), the actor's noiseless action
+            (for a tanh-Gaussian, ``tanh`` of the Gaussian's mean onto the box: what the project's runs use), or
+            ``"sample"``, a draw of a stochastic actor (RCE's original code). Both are reasonable: the first
+            gives the labels of the policy the trigger's state will be reset by, the second RCE's estimate of
+            the expectation over the policy's actions.
+        alpha_init (float): a stochastic actor's temperature, its first (or fixed) value. Defaults to 0.01.
+        fixed_alpha (bool): keep alpha at ``alpha_init``. Defaults to False (learned, as SAC).
+        target_entropy (float or "auto"): the learned alpha's target entropy; ``"auto"`` is ``-dim(A)`` (SAC's),
+            read from ``action_spec`` or from the actor's own spec. Defaults to ``"auto"``.
+        min_alpha, max_alpha (float, optional): bounds on alpha.
+        action_spec (TensorSpec, optional): the action spec, for ``target_entropy="auto"``.
+        entropy_sample (str): where the actor's ``log pi`` comes from: ``"own"`` (default), a second
+            reparameterised sample at the same states (what the project's runs use); ``"shared"``, the very
+            action the classifiers score (``SACLoss``'s).
 
     Examples:
         >>> import torch
@@ -221,10 +248,11 @@ class RCELoss(LossModule):
         example_state: NestedKey = "example"
         example_index: NestedKey = "index"
         one_step: NestedKey = "one_step"
+        log_prob: NestedKey = "action_log_prob"
 
     default_keys = _AcceptedKeys
     tensor_keys: _AcceptedKeys
-    out_keys = ["loss_classifier", "loss_actor"]
+    out_keys = ["loss_classifier", "loss_actor"]  # and loss_alpha with a stochastic actor
 
     actor_network: TensorDictModule
     actor_network_params: TensorDictParams
@@ -241,8 +269,18 @@ class RCELoss(LossModule):
         gamma: float = 0.99,
         n_steps: int = 10,
         clip_target_values: bool = False,
+        label_action: str = "deterministic",
+        alpha_init: float = 0.01,
+        fixed_alpha: bool = False,
+        target_entropy: float | str = "auto",
+        min_alpha: float | None = None,
+        max_alpha: float | None = None,
+        action_spec=None,
+        entropy_sample: str = "own",
     ) -> None:
         super().__init__()
+        if label_action not in LABEL_ACTIONS:
+            raise ValueError(f"label_action must be one of {LABEL_ACTIONS}, got {label_action!r}.")
         gamma = float(gamma)
         if not (0.0 < gamma < 1.0):
             raise ValueError(f"gamma must lie in (0, 1), got {gamma!r}.")
@@ -263,6 +301,16 @@ class RCELoss(LossModule):
         self.convert_to_functional(actor_network, "actor_network")
         self.convert_to_functional(classifier_network, "classifier_network", create_target_params=True)
         self._share_priors_with_target()
+        self.label_action = label_action
+        self._init_temperature(actor_network, alpha_init=alpha_init, fixed_alpha=fixed_alpha,
+                               target_entropy=target_entropy, min_alpha=min_alpha, max_alpha=max_alpha,
+                               action_spec=action_spec, entropy_sample=entropy_sample)
+        self.log_prob_key = self.tensor_keys.log_prob
+
+    def _label_mode(self):
+        """The exploration mode of the labels' and the examples' actions (``label_action``)."""
+        return set_exploration_type(ExplorationType.RANDOM if self.label_action == "sample"
+                                    else ExplorationType.DETERMINISTIC)
 
     def _check_keys(self) -> None:
         """The keys agree with the networks: checked at construction and after every :meth:`set_keys`."""
@@ -375,9 +423,13 @@ class RCELoss(LossModule):
     # -- the networks through their keys ----------------------------------------------------------
 
     def _act(self, states: TensorDictBase) -> torch.Tensor:
-        """``pi(s)``: the reset policy on its live parameters."""
+        """``pi(s)``: the reset policy on its live parameters (in the exploration mode in force)."""
+        return self._act_td(states).get(self.tensor_keys.action)
+
+    def _act_td(self, states: TensorDictBase) -> TensorDictBase:
+        """The reset policy's output at ``states`` (action, and a stochastic actor's ``log_prob``)."""
         with self.actor_network_params.to_module(self.actor_network):
-            return self.actor_network(states.select(*self._actor_in_keys)).get(self.tensor_keys.action)
+            return self.actor_network(states.select(*self._actor_in_keys))
 
     def _classify(self, states: TensorDictBase, action: torch.Tensor, params: TensorDictBase) -> torch.Tensor:
         """The members' logits ``[B, K]`` of ``(states, action)`` with the classifier's parameters ``params``."""
@@ -396,8 +448,7 @@ class RCELoss(LossModule):
     def labels(self, tensordict: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor]:
         """The shared label ``y`` and weight ``1 + gamma * w_y`` for each transition, without gradient."""
         replay = self._replay(tensordict)
-        # the actions of the current policy without noise, as in forward (which torchrl runs deterministically)
-        with torch.no_grad(), set_exploration_type(self.deterministic_sampling_mode):
+        with torch.no_grad(), self._label_mode():
             return self._label_and_weight(replay)
 
     def _label_and_weight(self, replay: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor]:
@@ -429,7 +480,7 @@ class RCELoss(LossModule):
 
     def _classifier_terms(self, replay, states, action, examples):
         """Eq. 2 on the batch: the classifier loss summed over members, with its label, weight and logits."""
-        with torch.no_grad():
+        with torch.no_grad(), self._label_mode():
             label, weight = self._label_and_weight(replay)
             example_action = self._act(examples)  # a ~ pi(s*) in Eq. 2's first term
 
@@ -444,7 +495,21 @@ class RCELoss(LossModule):
 
     def _actor_loss(self, states: TensorDictBase) -> torch.Tensor:
         """The actor: gradient ascent on the ensemble minimum of C_i(s, pi(s)), the classifier held fixed."""
-        return actor_loss(self._classify(states, self._act(states), self.classifier_network_params.detach()))
+        return self._actor_value_loss(states, self._act(states))
+
+    def _actor_value_loss(self, states: TensorDictBase, action: torch.Tensor) -> torch.Tensor:
+        """``-mean_t min_i C_i(s_t, a_t)`` for the policy's actions ``action``, the classifiers held fixed."""
+        return actor_loss(self._classify(states, action, self.classifier_network_params.detach()))
+
+    def _policy_loss(self, states: TensorDictBase) -> tuple[torch.Tensor, dict]:
+        """The actor's loss at ``states``: deterministic, :meth:`_actor_loss`; stochastic, on a reparameterised
+        sample, plus ``alpha * mean(log pi)`` (its metadata: ``log_prob``, ``entropy``, ``alpha``)."""
+        if not self.stochastic:
+            return self._actor_loss(states), {}
+        with set_exploration_type(ExplorationType.RANDOM):
+            acted = self._act_td(states)
+            value_loss = self._actor_value_loss(states, acted.get(self.tensor_keys.action))
+            return self._entropy_terms(value_loss, acted, lambda: self._act_td(states))
 
     def loss_classifier(self, tensordict: TensorDictBase) -> tuple[torch.Tensor, dict]:
         """The classifier loss alone (Eq. 2; gradient to the trainable classifier parameters only) and its
@@ -455,17 +520,28 @@ class RCELoss(LossModule):
 
     def loss_actor(self, tensordict: TensorDictBase) -> tuple[torch.Tensor, dict]:
         """The actor loss alone, ``-mean_t min_i C_i(s_t, pi(s_t))`` with the classifiers as they are now
-        (gradient to the actor only), as torchrl's ``DDPGLoss.loss_actor``. Reads only the replay states."""
+        (gradient to the actor only), as torchrl's ``DDPGLoss.loss_actor``. Reads only the replay states. With a
+        stochastic actor, ``pi(s_t)`` is a reparameterised sample and the loss adds ``alpha * mean(log pi)``;
+        the metadata then holds ``log_prob`` (detached, for :meth:`loss_alpha`), ``entropy`` and ``alpha``."""
         replay = self._replay(tensordict)
-        return self._actor_loss(self._require(replay, None, "s_t")), {}
+        return self._policy_loss(self._require(replay, None, "s_t"))
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         """Both losses on one batch with the classifiers as they are before the update (the loss of a joint
         step); :meth:`loss_classifier` and :meth:`loss_actor` give them one at a time."""
         replay, states, action, examples = self._read(tensordict)
         loss_classifier, label, weight, replay_logits, example_logits = self._classifier_terms(replay, states, action, examples)
-        loss_actor = self._actor_loss(states)
-        return self._output(loss_classifier, loss_actor, label, weight, replay_logits, example_logits)
+        loss_actor, actor_meta = self._policy_loss(states)
+        out = self._output(loss_classifier, loss_actor, label, weight, replay_logits, example_logits)
+        return self._with_temperature(out, actor_meta)
+
+    def _with_temperature(self, out: TensorDict, actor_meta: dict) -> TensorDict:
+        """A stochastic actor's entries beside the losses: ``loss_alpha`` (with its graph), ``alpha``, ``entropy``."""
+        if self.stochastic:
+            out.set("loss_alpha", self.loss_alpha(actor_meta["log_prob"]))
+            out.set("alpha", actor_meta["alpha"])
+            out.set("entropy", actor_meta["entropy"])
+        return out
 
     @staticmethod
     def _metadata(label, weight, replay_logits, example_logits) -> dict:
@@ -486,4 +562,8 @@ class RCELoss(LossModule):
         return out
 
     def extra_repr(self) -> str:
-        return f"gamma={self.gamma}, n_steps={self.n_steps}, clip_target_values={self.clip_target_values}"
+        text = f"gamma={self.gamma}, n_steps={self.n_steps}, clip_target_values={self.clip_target_values}"
+        if self.stochastic:
+            text += f", label_action={self.label_action!r}, entropy_sample={self.entropy_sample!r}"
+        return text
+

@@ -3,24 +3,23 @@ classifier ensemble with priors; LNT: DDPG on a Q ensemble; each kind described 
 and the trigger each reset agent drives."""
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import torch
 from omegaconf import OmegaConf
 from tensordict import TensorDict
-from tensordict.nn import NormalParamExtractor, TensorDictModule, TensorDictSequential
+from tensordict.nn import TensorDictSequential
 from torch import nn
-from torchrl.envs.utils import ExplorationType, set_exploration_type
-from torchrl.modules import OrnsteinUhlenbeckProcessModule, ProbabilisticActor, TanhModule, TanhNormal
+from torchrl.modules import OrnsteinUhlenbeckProcessModule
 from torchrl.objectives import SoftUpdate
 
 from torchrl_reset import ResetTriggerTransform, accel
-from torchrl_reset.actor_heads import EntropyBonus, InvertingGradientHead, actor_penalties
+from torchrl_reset.actor_heads import ActorHead, TanhHead, actor_head, head_from_settings
 
 from torchrl_reset_recipes.training.run_spec import RunSpec
 
-__all__ = ["ACTOR_HEADS", "speed_components", "make_actor", "normalised_action", "ActorTerms", "make_actor_terms", "with_exploration", "exploration_settings", "make_adam", "Agent", "make_forward_agent", "make_reset_agent", "make_trigger", "reset_tau"]
+__all__ = ["speed_components", "make_actor", "reset_head", "with_exploration", "exploration_settings", "make_adam", "Agent", "make_forward_agent", "make_reset_agent", "make_trigger", "reset_tau"]
 
 
 def speed_components(spec: RunSpec) -> accel.Components:
@@ -28,102 +27,28 @@ def speed_components(spec: RunSpec) -> accel.Components:
     return accel.components(bool(spec["speed.accelerate"]))
 
 
-#: the reset actor's output heads (``reset.actor.head``): the release's deterministic tanh, the linear output with
-#: inverted gradients at the bounds, the stochastic tanh-Gaussian (RCE's original actor)
-ACTOR_HEADS = ("tanh", "inverting", "tanh_normal")
-
-
 def make_actor(obs_dim: int, action_spec, hidden_sizes, parts: accel.Components | None = None,
-               head: str = "tanh") -> TensorDictSequential:
-    """The paper's policy: a 400-300 ReLU MLP, Xavier-uniform weights and zero biases, onto the action box by
-    ``head`` (:data:`ACTOR_HEADS`): ``tanh`` (the paper's), ``inverting`` (a linear output clipped to the box,
-    :class:`~torchrl_reset.actor_heads.InvertingGradientHead`) or ``tanh_normal`` (a torchrl
-    ``ProbabilisticActor`` on a ``TanhNormal`` whose location is the pre-activation: it samples in
-    ``ExplorationType.RANDOM``, the collector's mode, and acts ``tanh(loc)`` otherwise). Every head writes the
-    pre-activation ``action_preactivation`` beside ``action``."""
-    if head not in ACTOR_HEADS:
-        raise ValueError(f"unknown actor head {head!r}; known: {', '.join(ACTOR_HEADS)}")
-    act_dim = action_spec.shape[-1]
-    layers, width = [], obs_dim
-    for size in hidden_sizes:
-        layers += [nn.Linear(width, size), nn.ReLU()]
-        width = size
-    layers.append(nn.Linear(width, 2 * act_dim if head == "tanh_normal" else act_dim))
-    net = nn.Sequential(*layers)
-    for layer in net:
-        if isinstance(layer, nn.Linear):
-            nn.init.xavier_uniform_(layer.weight)
-            nn.init.zeros_(layer.bias)
-    if head == "tanh_normal":
-        module = TensorDictModule(nn.Sequential(net, NormalParamExtractor()), in_keys=["observation"],
-                                  out_keys=["action_preactivation", "action_scale"])
-        low, high = action_spec.space.low, action_spec.space.high
-        return TensorDictSequential(ProbabilisticActor(
-            module, in_keys={"loc": "action_preactivation", "scale": "action_scale"}, spec=action_spec,
-            distribution_class=TanhNormal, distribution_kwargs={"low": low, "high": high}, return_log_prob=True))
-    squash = (TanhModule(["action_preactivation"], ["action"], spec=action_spec) if head == "tanh"
-              else InvertingGradientHead(action_spec.space.low, action_spec.space.high))
-    return TensorDictSequential((parts or accel.components()).tensor_module(net, "observation", "action_preactivation"),
-                                squash)
+               head: ActorHead | str = "tanh") -> TensorDictSequential:
+    """The paper's policy (a 400-300 ReLU MLP, Xavier-uniform weights and zero biases) with ``head``
+    (:class:`~torchrl_reset.actor_heads.ActorHead` or its name): its network on the fast path's tensor module
+    where the head takes one. Every head writes the pre-activation ``action_preactivation`` beside ``action``."""
+    head = actor_head(head) if isinstance(head, str) else head
+    return head.make_actor(obs_dim, action_spec, tuple(hidden_sizes),
+                           tensor_module=(parts or accel.components()).tensor_module)
 
 
-def normalised_action(preactivation: torch.Tensor, head: str) -> torch.Tensor:
-    """The policy's noiseless action in the box's normalised coordinates ([-1, 1]) from its pre-activation."""
-    return preactivation.clamp(-1.0, 1.0) if head == "inverting" else torch.tanh(preactivation)
+def reset_head(spec: RunSpec) -> ActorHead:
+    """The reset actor's head from ``reset.actor.*``: its kind (``head``), its penalties and, for the
+    tanh-Gaussian, its temperature (``entropy: auto``, learned from 0.01 towards -dim(A); a number, fixed)."""
+    settings = {key: spec[f"reset.actor.{key}"] for key in ("preact_penalty", "action_l2", "entropy")}
+    return head_from_settings(spec["reset.actor.head"], **settings)
 
 
-class ActorTerms:
-    """What ``reset.actor`` adds to the reset actor's loss, on the states of the actor's batch: the penalties
-    (``preact_penalty`` on ``mean(u^2)``, ``action_l2`` on the normalised action's ``mean(a^2)``) and, for the
-    ``tanh_normal`` head, the entropy term (:class:`~torchrl_reset.actor_heads.EntropyBonus`, whose learned
-    temperature, when ``entropy: auto``, is a parameter of the reset loss and of its optimizer). The terms take
-    an actor pass of their own on those states (for the entropy, a sample of its own: an unbiased estimate of
-    ``E[alpha log pi]`` beside the loss's own sampled actions)."""
-
-    def __init__(self, actor, head: str, preact_penalty: float, action_l2: float, entropy: EntropyBonus | None):
-        self.actor, self.head = actor, head
-        self.preact_penalty, self.action_l2, self.entropy = preact_penalty, action_l2, entropy
-
-    @property
-    def stochastic(self) -> bool:
-        """Whether the actor's loss takes sampled actions (the tanh-Gaussian head)."""
-        return self.head == "tanh_normal"
-
-    def __call__(self, sample) -> torch.Tensor:
-        with set_exploration_type(ExplorationType.RANDOM if self.stochastic else ExplorationType.DETERMINISTIC):
-            td = self.actor(sample.select(*self.actor.in_keys))
-        u = td.get("action_preactivation")
-        total = actor_penalties(u, normalised_action(u, self.head), preact_penalty=self.preact_penalty,
-                                action_l2=self.action_l2)
-        if self.entropy is not None:
-            total = total + self.entropy(td.get("action_log_prob"))
-        return total
-
-
-def make_actor_terms(spec: RunSpec, actor, action_dim: int) -> ActorTerms | None:
-    """The terms ``reset.actor`` adds to the reset actor's loss, or None where it adds none (the release)."""
-    head = spec["reset.actor.head"]
-    preact, l2 = float(spec["reset.actor.preact_penalty"]), float(spec["reset.actor.action_l2"])
-    entropy = spec["reset.actor.entropy"]
-    bonus = None
-    if head == "tanh_normal":
-        bonus = (EntropyBonus(AUTO_ENTROPY_INIT, target_entropy=-float(action_dim)) if entropy == "auto"
-                 else EntropyBonus(float(entropy)))
-    if head != "tanh_normal" and not preact and not l2:
-        return None
-    return ActorTerms(actor, head, preact, l2, bonus)
-
-
-#: ``reset.actor.entropy: auto``: the temperature's first value (RCE's fixed coefficient is 1e-4; SAC starts at
-#: 1 for rewards whose values run to the hundreds, where this actor's objective, a probability, stays below 1)
-AUTO_ENTROPY_INIT = 0.01
-
-
-def with_exploration(actor, action_spec, spec: RunSpec, head: str = "tanh") -> TensorDictSequential:
+def with_exploration(actor, action_spec, spec: RunSpec, head: ActorHead | None = None) -> TensorDictSequential:
     """The policy plus Ornstein-Uhlenbeck noise; ``exploration.clip: false`` (the release) leaves the noisy
     action outside the action box (the env clamps it at the motors' range; buffers and trigger see it as drawn).
-    A ``tanh_normal`` actor explores by its own samples and gets no noise."""
-    if head == "tanh_normal":
+    An actor whose head explores by its own samples (the tanh-Gaussian) gets no noise."""
+    if head is not None and head.stochastic:
         return actor
     settings = exploration_settings(spec)
     noise = OrnsteinUhlenbeckProcessModule(
@@ -162,8 +87,7 @@ class Agent:
     targets: SoftUpdate
     model: Any  # the critic or classifier ensemble
     critic_loss: str = "loss_value"  # its critic's loss entry, minimised beside "loss_actor" ("loss_classifier": RCE)
-    actor_terms: ActorTerms | None = None  # what reset.actor adds to the actor's loss (None: nothing)
-    head: str = "tanh"  # the actor's output head (ACTOR_HEADS)
+    head: ActorHead = field(default_factory=TanhHead)  # the actor's output head: its penalties, its saturation
 
 
 def make_forward_agent(spec: RunSpec, obs_dim: int, action_spec) -> Agent:
@@ -190,21 +114,18 @@ def make_reset_agent(spec: RunSpec, obs_dim: int, action_spec) -> Agent:
     """The reset agent of the run's kind (:mod:`.reset_agents`): ours, RCE on a classifier ensemble with
     priors; LNT / LNT-sparse, DDPG on a Q ensemble."""
     cfg, parts, kind = spec.cfg, speed_components(spec), spec.kind
-    act_dim, head = action_spec.shape[-1], spec["reset.actor.head"]
+    act_dim, head = action_spec.shape[-1], reset_head(spec)
     actor = make_actor(obs_dim, action_spec, cfg.hidden_sizes, parts, head)
-    model, loss, groups = kind.build(spec, actor, obs_dim, act_dim, parts)
-    terms = make_actor_terms(spec, actor, act_dim)
-    if terms is not None and terms.entropy is not None:
-        loss.entropy_bonus = terms.entropy  # saved and loaded with the loss's state
-        if terms.entropy.learned:  # the temperature steps with the actor, at the classifiers' rate
-            groups = [*groups, {"params": [terms.entropy.log_alpha], "lr": cfg.reset.critic_lr}]
+    model, loss, groups = kind.build(spec, actor, obs_dim, act_dim, parts, head)
+    if loss.temperature is not None and loss.temperature.learned:  # steps with the actor, at the classifiers' rate
+        groups = [*groups, {"params": [loss.temperature.log_alpha], "lr": cfg.reset.critic_lr}]
     optimizer = make_adam(spec, groups)
     targets = parts.soft_update(loss, tau=reset_tau(spec))  # building it copies the networks into their targets
     # the targets that start as draws of their own (target_init: release for ours; algo.target_draws for LNT)
     for network, name in kind.fresh_targets(spec, loss, obs_dim, act_dim, parts,
                                             lambda: make_actor(obs_dim, action_spec, cfg.hidden_sizes, parts, head)):
         draw_target(getattr(loss, name), network)
-    return Agent(actor, loss, optimizer, targets, model, kind.critic_loss, terms, head)
+    return Agent(actor, loss, optimizer, targets, model, kind.critic_loss, head)
 
 
 def draw_target(target, fresh: nn.Module) -> None:

@@ -11,7 +11,7 @@ from omegaconf import DictConfig, OmegaConf
 from torchrl_reset.accel import MATMUL_PRECISIONS
 from torchrl_reset_recipes import CONF
 from torchrl_reset_recipes.training.absent_keys import setting
-from torchrl_reset_recipes.training.agents import ACTOR_HEADS
+from torchrl_reset.actor_heads import ACTOR_HEADS
 from torchrl_reset_recipes.training.reset_agents import KINDS
 from torchrl_reset_recipes.training.run_spec import reset_horizon, should_resume
 from torchrl_reset_recipes.training.checkpoints import Checkpoints, identity_differences, no_intact_checkpoint
@@ -52,9 +52,9 @@ def actor_problems(cfg: DictConfig) -> list[str]:
     entropy = setting(cfg, "reset.actor.entropy")
     if entropy != "auto" and (isinstance(entropy, bool) or not isinstance(entropy, (int, float)) or entropy <= 0):
         problems.append(f"reset.actor.entropy must be a number > 0 or auto, got {entropy!r}")
-    if head == "tanh_normal" and setting(cfg, "update_order") != "release":
-        problems.append("reset.actor.head=tanh_normal needs update_order=release (its actor step samples actions; "
-                        "the classifiers' labels take its deterministic action tanh(loc))")
+    if head in ACTOR_HEADS and ACTOR_HEADS[head].stochastic and setting(cfg, "update_order") != "release":
+        problems.append(f"reset.actor.head={head} needs update_order=release (its actor step samples actions; "
+                        "the classifiers' labels take its deterministic action)")
     return problems
 
 

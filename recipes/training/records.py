@@ -21,9 +21,9 @@ from tqdm import tqdm
 
 from torchrl_reset_recipes.training.buffers import fallback_count, restore_fallback_count
 from torchrl_reset_recipes.training.run_spec import RunSpec
-from torchrl_reset_recipes.training.agents import normalised_action
+from torchrl_reset_recipes.training.agents import reset_head
 from torchrl_reset_recipes.training.diagnostics import DIAGNOSTIC_FIELDS, RESET_FIELDS, ResetDistances, TriggerScores, probe_classifier
-from torchrl_reset.actor_heads import saturation
+from torchrl_reset.actor_heads import TanhHead
 from torchrl_reset_recipes.training.run_folder import CsvTable, code_version, processor_name, reset_outcomes_by_quarter
 from torchrl_reset_recipes.training.task_envs import safety_counters
 
@@ -81,7 +81,7 @@ class RunRecord:
         self.history = {"eval_returns": [], "last_losses": {}, "elapsed": 0.0}
         self.curriculum_index = int(cfg.task.curriculum.index)
         self.heat_up = int(cfg.heat_up)
-        self.heads = {"forward": "tanh", "reset": spec["reset.actor.head"]}
+        self.heads = {"forward": TanhHead(), "reset": reset_head(spec)}  # each measures its saturation
         self.window = Saturation.empty()  # this log window's counts, per phase
         self.last_window = {}  # the last log row's saturation entries
 
@@ -150,7 +150,7 @@ class RunRecord:
         self.bar.update(batch.numel())
         preactivation = batch.get("action_preactivation", None)
         if preactivation is not None:
-            counts = saturation(normalised_action(preactivation, self.heads[phase]), preactivation)
+            counts = self.heads[phase].saturation(preactivation)
             Saturation.add(self.window[phase], counts)
             if self.collector.frames > 0.75 * int(self.cfg.total_steps):
                 Saturation.add(self.late_saturation[phase], counts)

@@ -21,6 +21,7 @@ from torchrl_reset_recipes.training.absent_keys import ABSENT_KEYS, setting
 from torchrl_reset import EpisodeWindowSampler, NStepStateTransform, ResetTriggerTransform, success_probability
 from torchrl_reset.ensemble import PRIOR_BIAS_DRAWS
 from torchrl_reset.ensemble_ddpg import EnsembleDDPGLoss
+from torchrl_reset.stochastic_actor import EntropyDDPGLoss
 from torchrl_reset.td_bounds import bound_td0_targets
 
 __all__ = ["ResetAgentKind", "RCEKind", "LNTKind", "KINDS", "lnt_batch", "END_FLAGS"]
@@ -44,8 +45,9 @@ class ResetAgentKind:
     #: how its trigger reduces the members' scores
     reduction: str
 
-    def build(self, spec, actor, obs_dim: int, act_dim: int, parts):
-        """Its model (the ensemble) and loss module on ``actor``; returns ``(model, loss, param_groups)``."""
+    def build(self, spec, actor, obs_dim: int, act_dim: int, parts, head):
+        """Its model (the ensemble) and loss module on ``actor`` (whose ``head`` gives the loss its arguments:
+        a stochastic actor's temperature); returns ``(model, loss, param_groups)``."""
         raise NotImplementedError
 
     def fresh_targets(self, spec, loss, obs_dim: int, act_dim: int, parts, make_actor) -> list[tuple]:
@@ -89,7 +91,7 @@ class RCEKind(ResetAgentKind):
 
     name, critic_loss, scores_probability, reduction = "ours", "loss_classifier", True, "mean"
 
-    def build(self, spec, actor, obs_dim, act_dim, parts):
+    def build(self, spec, actor, obs_dim, act_dim, parts, head):
         cfg = spec.cfg
         model = parts.ensemble(
             obs_dim, act_dim, num_members=cfg.algo.num_members, hidden_sizes=tuple(cfg.hidden_sizes),
@@ -98,7 +100,7 @@ class RCEKind(ResetAgentKind):
         )
         _pessimistic_start(spec, model)  # not the paper's, when set; before the targets copy the networks
         loss = parts.rce_loss(actor, model, gamma=cfg.gamma, n_steps=cfg.algo.n_steps,
-                              clip_target_values=bool(spec["algo.clip_target_values"]))
+                              clip_target_values=bool(spec["algo.clip_target_values"]), **head.loss_kwargs())
         groups = [{"params": list(actor.parameters()), "lr": cfg.reset.actor_lr},
                   {"params": list(model.parameters()), "lr": cfg.reset.critic_lr}]  # the priors are buffers
         return model, loss, groups
@@ -168,7 +170,7 @@ class LNTKind(ResetAgentKind):
     def __init__(self, name: str) -> None:
         self.name = name
 
-    def build(self, spec, actor, obs_dim, act_dim, parts):
+    def build(self, spec, actor, obs_dim, act_dim, parts, head):
         cfg = spec.cfg
         model = parts.ensemble(
             obs_dim, act_dim, num_members=cfg.algo.num_members, hidden_sizes=tuple(cfg.hidden_sizes),
@@ -179,9 +181,9 @@ class LNTKind(ResetAgentKind):
         if independent or per_member:  # the authors' K-critic DDPG class (not the project's default LNT)
             loss = EnsembleDDPGLoss(actor, model, gamma=cfg.gamma, independent_batches=independent,
                                     member_actor_gradient=per_member, reward_key="lnt_reward",
-                                    reward_bounds=None if bounds is None else tuple(bounds))
-        else:
-            loss = parts.ddpg_loss(actor, model, delay_actor=True, delay_value=True)
+                                    reward_bounds=None if bounds is None else tuple(bounds), **head.loss_kwargs())
+        else:  # torchrl's DDPGLoss (with a stochastic actor's temperature where the head has one)
+            loss = EntropyDDPGLoss(actor, model, delay_actor=True, delay_value=True, **head.loss_kwargs())
             loss.set_keys(reward="lnt_reward")  # written by prepare(): one column per member
             loss.make_value_estimator(gamma=cfg.gamma)
             if bounds is not None:  # not the paper's: TD targets clipped to the values these rewards allow

@@ -19,7 +19,7 @@ def update(agent: Agent, sample, loss_module, *, release_order: bool) -> dict[st
     the critic (classifiers) on its loss, then a step of the actor on its loss computed with the updated
     critic, on as many rows drawn with replacement from the critic's batch. Otherwise one step on the sum of
     both losses computed together by ``loss_module`` (the agent's loss, or its compiled form)."""
-    terms = agent.actor_terms  # what reset.actor adds to the actor's loss (None: the release, nothing)
+    stochastic = bool(getattr(agent.loss, "stochastic", False))  # a tanh-Gaussian actor: the loss samples itself
     if release_order:
         critic_loss, _ = getattr(agent.loss, agent.critic_loss)(sample)
         optimizer_step(agent, critic_loss, agent.critic_loss)
@@ -28,19 +28,21 @@ def update(agent: Agent, sample, loss_module, *, release_order: bool) -> dict[st
         else:
             rows = torch.randint(sample.shape[0], (sample.shape[0],), device=sample.device)
             actor_batch = sample[rows]
-        if terms is None:
-            actor_loss, _ = agent.loss.loss_actor(actor_batch)
-        else:  # a tanh-Gaussian actor's loss takes sampled actions (reparameterised)
-            with set_exploration_type(ExplorationType.RANDOM if terms.stochastic else ExplorationType.DETERMINISTIC):
-                actor_loss, _ = agent.loss.loss_actor(actor_batch)
-            actor_loss = actor_loss + terms(actor_batch)
+        with set_exploration_type(ExplorationType.DETERMINISTIC):  # (a stochastic actor's loss samples anyway)
+            actor_loss, actor_meta = agent.loss.loss_actor(actor_batch)
+        if stochastic:  # the temperature steps with the actor (0 when it is fixed)
+            actor_loss = actor_loss + agent.loss.loss_alpha(actor_meta["log_prob"])
+        penalty = agent.head.penalty(agent.actor, actor_batch)
+        if penalty is not None:
+            actor_loss = actor_loss + penalty
         optimizer_step(agent, actor_loss, "loss_actor")
         losses = {"loss_actor": actor_loss, agent.critic_loss: critic_loss}
     else:
         out = loss_module(sample)
         losses = {"loss_actor": out["loss_actor"], agent.critic_loss: out[agent.critic_loss]}
-        if terms is not None:
-            losses["loss_actor"] = losses["loss_actor"] + terms(sample)
+        penalty = agent.head.penalty(agent.actor, sample)
+        if penalty is not None:
+            losses["loss_actor"] = losses["loss_actor"] + penalty
         optimizer_step(agent, losses["loss_actor"] + losses[agent.critic_loss], *losses, values=losses)
     agent.targets.step()  # the soft target update: target <- (1 - tau) target + tau network
     return {name: float(value.detach()) for name, value in losses.items()}

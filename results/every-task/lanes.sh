@@ -9,7 +9,11 @@ queue="$(dirname "$0")/queue.txt"
 lanes="${1:-2}"
 state=runs/every-task/.queue
 mkdir -p "$state"
-rm -rf "$state"/taken.*
+# a launch beside a running one (more lanes) keeps its claims; a fresh launch clears the last launch's
+if ! { [[ -f "$state/lanes.pid" ]] && kill -0 "$(cat "$state/lanes.pid")" 2>/dev/null; }; then
+    rm -rf "$state"/taken.*
+    echo $$ > "$state/lanes.pid"
+fi
 
 lane() {
     while :; do

@@ -48,7 +48,7 @@ class FastRCELoss(RCELoss):
         slots = replay.get(_as_tuple(keys.example_state) + _as_tuple(keys.example_index), None)
         net = self.classifier_network
 
-        with torch.no_grad():
+        with torch.no_grad(), self._label_mode():
             # One actor pass for s_{t+1}, s_{t+n} and s*; one target-classifier pass for the first two.
             targets = self._target_states(replay)
             num_targets = targets.shape[0]
@@ -76,15 +76,18 @@ class FastRCELoss(RCELoss):
         loss, _, label, weight, replay_logits, example_logits = self._fast_terms(tensordict, with_actor=False)
         return loss, self._metadata(label, weight, replay_logits, example_logits)
 
-    def loss_actor(self, tensordict: TensorDictBase):
+    def _actor_value_loss(self, states: TensorDictBase, action: torch.Tensor) -> torch.Tensor:
         if not self._fast():
-            return super().loss_actor(tensordict)
-        states = self._require(self._replay(tensordict), None, "s_t")
+            return super()._actor_value_loss(states, action)
         net = self.classifier_network
-        logits = net.logits(net.observation_from(states), self._act(states), self.classifier_network_params.detach())
-        return actor_loss(logits), {}
+        return actor_loss(net.logits(net.observation_from(states), action, self.classifier_network_params.detach()))
 
     def forward(self, tensordict: TensorDictBase):
         if not self._fast():
             return super().forward(tensordict)
+        if self.stochastic:  # the actor's pass samples: it cannot share the classifier's deterministic pass
+            loss, _, label, weight, replay_logits, example_logits = self._fast_terms(tensordict, with_actor=False)
+            loss_actor, actor_meta = self._policy_loss(self._require(self._replay(tensordict), None, "s_t"))
+            out = self._output(loss, loss_actor, label, weight, replay_logits, example_logits)
+            return self._with_temperature(out, actor_meta)
         return self._output(*self._fast_terms(tensordict, with_actor=True))
