@@ -62,6 +62,9 @@ def test_the_readme_loop_runs_both_agents_and_updates_both(ran):
     assert ran["forward_opt"].state and ran["reset_opt"].state
     losses = ran["rce"](_reset_sample(ran))
     assert torch.isfinite(losses["loss_classifier"]) and torch.isfinite(losses["loss_actor"])
+    # the project's reset actor: stochastic, its temperature learned (moved from its first value, 0.01)
+    assert ran["rce"].stochastic and torch.isfinite(losses["loss_alpha"])
+    assert float(ran["rce"].alpha) != pytest.approx(0.01)
     assert c["manual_resets"] + c["successful_resets"] + c["terminations"] == c["reset_episodes"]
 
 
@@ -93,7 +96,9 @@ def test_the_readme_optimizers_cover_the_actors_and_trained_members_only(ran):
         return ids(p for group in opt.param_groups for p in group["params"])
 
     reset_actor, classifiers, rce = ran["reset_actor"], ran["classifiers"], ran["rce"]
-    assert optimized(ran["reset_opt"]) == ids(reset_actor.parameters()) | ids(classifiers.parameters())
+    assert optimized(ran["reset_opt"]) == (ids(reset_actor.parameters()) | ids(classifiers.parameters())
+                                           | {id(rce.temperature.log_alpha)})
+    assert any(p is rce.temperature.log_alpha for p in rce.parameters())  # the temperature is the loss's own
     trained = {p.data_ptr() for group in ran["reset_opt"].param_groups for p in group["params"]}
     priors = {b.data_ptr() for name, b in classifiers.named_buffers() if name.startswith("prior")}
     targets = {t.data_ptr() for t in rce.target_classifier_network_params.values(True, True)}
@@ -107,7 +112,8 @@ def test_the_readme_optimizers_cover_the_actors_and_trained_members_only(ran):
 def test_the_readme_loop_is_the_documented_one():
     code = readme_loop()
     for piece in ("max_episode_steps=-1", '"reset_success"', "NStepStateTransform(10)", "EpisodeWindowSampler(10)",
-                  "collector.set_seed(", "example_buffer.sample(len(sample))", "targets.step()", ">= heat_up"):
+                  "collector.set_seed(", "example_buffer.sample(len(sample))", "targets.step()", ">= heat_up",
+                  "TanhNormalHead()", 'loss["loss_alpha"]'):
         assert piece in code, piece
 
 
