@@ -15,7 +15,7 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type, step_mdp
 
 from ._validation import check_int
 from .example_buffer import InitialStateBuffer
-from .collector_env import (_private_keys, own_time_limit, truncation_warning, termination_warning, set_up_loop, stopped_scores, check_state_keys, _state_owner)
+from .collector_env import (private_keys, own_time_limit, truncation_warning, termination_warning, set_up_loop, stopped_scores, check_state_keys, state_owner)
 
 __all__ = ["DualCollector"]
 
@@ -169,7 +169,7 @@ class DualCollector(BaseCollector):
                 f"example_keys {list(example_keys)} differ from the example buffer's state_keys {example_buffer.state_keys}."
             )
         self.example_buffer = example_buffer
-        self._state_owner = _state_owner(env)
+        self._state_owner = state_owner(env)
         # the env's own episode ends already warned about ("truncated", "terminated"), each once per collector
         self._warned: set[str] = set()
         limit = own_time_limit(env)
@@ -255,7 +255,7 @@ class DualCollector(BaseCollector):
         if phase == FORWARD:
             self.example_buffer.add(td)
         if not self.restart_exploration:  # the phase's own exploration state, where its last episode left it
-            for key in _private_keys(td):
+            for key in private_keys(td):
                 del td[key]
             td.update(self._exploration[phase])
         self._td = td
@@ -293,7 +293,7 @@ class DualCollector(BaseCollector):
         with torch.no_grad(), set_exploration_type(self.exploration_type):
             td = policy(td)
         if not self.restart_exploration:
-            self._exploration[self._phase] = {key: td.get(key) for key in _private_keys(td)}
+            self._exploration[self._phase] = {key: td.get(key) for key in private_keys(td)}
         return self.env.step(td)
 
     def _executed(self, td: TensorDictBase, phase: int) -> TensorDictBase:
@@ -303,7 +303,7 @@ class DualCollector(BaseCollector):
         self.counters[f"{PHASE_NAMES[phase]}_steps"] += 1
         if len(self._warned) < 2:
             self._check_own_episode_end(td.get("next"), phase)
-        step = td.exclude(*_private_keys(td))
+        step = td.exclude(*private_keys(td))
         step.set(("collector", "phase"), torch.tensor(phase, device=td.device))
         step.set(("collector", "traj_ids"), torch.tensor(self._traj_id, device=td.device))
         if step.get(("next", "truncated"), None) is None:

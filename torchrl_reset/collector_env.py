@@ -15,7 +15,7 @@ __all__ = ["find_trigger_transforms", "own_time_limit", "truncation_warning", "t
            "check_event_keys", "stopped_scores", "check_state_keys"]
 
 
-def _private_keys(td: TensorDictBase) -> list[str]:
+def private_keys(td: TensorDictBase) -> list[str]:
     """The root entries whose names start with ``_``: state a module keeps in the tensordict (exploration noise)."""
     return [k for k in td.keys() if isinstance(k, str) and k.startswith("_")]
 
@@ -159,7 +159,7 @@ def check_state_keys(state_dict) -> None:
         raise KeyError(f"not a DualCollector state_dict: missing {sorted(missing)}.")
 
 
-def _state_owner(env: EnvBase):
+def state_owner(env: EnvBase):
     """The innermost env (or wrapper) offering ``get_simulator_state`` / ``set_simulator_state``, if any."""
     while True:
         if callable(getattr(env, "get_simulator_state", None)) and callable(getattr(env, "set_simulator_state", None)):

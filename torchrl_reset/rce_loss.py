@@ -23,12 +23,12 @@ LABEL_ACTIONS = ("deterministic", "sample")
 __all__ = ["RCELoss", "LABEL_ACTIONS", "rce_label", "label_weight", "shared_label", "classifier_loss", "actor_loss"]
 
 
-def _as_tuple(key: NestedKey) -> tuple[str, ...]:
+def key_tuple(key: NestedKey) -> tuple[str, ...]:
     return (key,) if isinstance(key, str) else tuple(key)
 
 
 def _contains(keys, key: NestedKey) -> bool:
-    return _as_tuple(key) in {_as_tuple(k) for k in keys}
+    return key_tuple(key) in {key_tuple(k) for k in keys}
 
 
 def rce_label(c: torch.Tensor, discount: float) -> torch.Tensor:
@@ -384,7 +384,7 @@ class RCELoss(StochasticActorMixin, LossModule):
         keys = self.tensor_keys
         subs = (keys.next_state, keys.nstep_state, keys.example_state)
         return [*self._state_keys, keys.action,
-                *[(*_as_tuple(sub), *_as_tuple(key)) for sub in subs for key in self._state_keys], keys.one_step]
+                *[(*key_tuple(sub), *key_tuple(key)) for sub in subs for key in self._state_keys], keys.one_step]
 
     # -- reading the batch ------------------------------------------------------------------------
 
@@ -394,8 +394,8 @@ class RCELoss(StochasticActorMixin, LossModule):
             raise KeyError(
                 f"RCELoss needs the entry {sub!r} ({what}) in its input; got {sorted(map(str, tensordict.keys()))}."
             )
-        present = {_as_tuple(k) for k in data.keys(True, True)}
-        missing = [key for key in self._state_keys if _as_tuple(key) not in present]
+        present = {key_tuple(k) for k in data.keys(True, True)}
+        missing = [key for key in self._state_keys if key_tuple(key) not in present]
         if missing:
             where = "the root" if sub is None else repr(sub)
             raise KeyError(f"RCELoss needs the state key(s) {missing} under {where} ({what}).")

@@ -10,12 +10,14 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
+from omegaconf import OmegaConf  # noqa: E402
 
-from torchrl_reset_recipes.analysis.runs import (TASK_TITLES, METRICS, COLORS, RunFolder, _is_paper_setting, _title,
-                                                 _file_suffix,
-                                                 _mean_std, _reached,
-                                                 _complete,
-                                                 _row_order, _by)
+from torchrl_reset_recipes.analysis.stretches import run_task
+from torchrl_reset_recipes.analysis.runs import (TASK_TITLES, METRICS, COLORS, RunFolder, is_paper_setting, title,
+                                                 file_suffix,
+                                                 mean_std, reached,
+                                                 complete,
+                                                 row_order, by)
 
 
 def _curves(members: list[RunFolder], table: str, column: str):
@@ -80,20 +82,20 @@ def figure3_groups(task_runs: list[RunFolder]) -> dict[str, tuple[list[RunFolder
     """Fig. 3's runs per algorithm (and setting, where runs differ in one) and their legend label: the runs
     the table's means take (with a budget, those that reached it, so that no band jumps where a shorter run
     ends). Keys: the algorithm, with `` (<setting>)`` where its runs differ in settings."""
-    kept, _ = _complete(_by(task_runs, "algo", "setting"))
+    kept, _ = complete(by(task_runs, "algo", "setting"))
     groups = {}
-    for (algo, setting), members in sorted(kept.items(), key=lambda kv: _row_order("", *kv[0], None)):
-        label = _title(algo, setting)
+    for (algo, setting), members in sorted(kept.items(), key=lambda kv: row_order("", *kv[0], None)):
+        label = title(algo, setting)
         key = algo + (f" ({setting})" if setting else "")
-        groups[key] = (members, label if all(map(_reached, members)) else f"{label}, in progress")
+        groups[key] = (members, label if all(map(reached, members)) else f"{label}, in progress")
     return groups
 
 
 def _line_style(setting: str, others: list[str]) -> str:
     """Solid for the only or the paper's setting; dashed, dotted, dash-dotted for the others in turn."""
-    if _is_paper_setting(setting):
+    if is_paper_setting(setting):
         return "-"
-    variants = sorted(s for s in others if not _is_paper_setting(s))
+    variants = sorted(s for s in others if not is_paper_setting(s))
     return ("--", ":", "-.")[variants.index(setting) % 3]
 
 
@@ -107,7 +109,6 @@ def _episodic_style(style: str, settings_differ: bool, plain: str = "--") -> dic
 
 
 def _config_value(run: RunFolder, key: str):
-    from omegaconf import OmegaConf
 
     return None if run.config is None else OmegaConf.select(run.config, key, default=None)
 
@@ -203,26 +204,26 @@ def draw_figure3(task: str, task_runs: list[RunFolder]):
 
 def figure3(runs: list[RunFolder], out: Path) -> list[Path]:
     written = []
-    for (task,), task_runs in _by(runs, "task").items():
+    for (task,), task_runs in by(runs, "task").items():
         _save(draw_figure3(task, task_runs), out / f"fig3_{task}.png", written)
     return written
 
 
 def figure4(runs: list[RunFolder], out: Path) -> list[Path]:
     written = []
-    for (task, algo, setting), members in _by(runs, "task", "algo", "setting").items():
+    for (task, algo, setting), members in by(runs, "task", "algo", "setting").items():
         thresholds = sorted({r.p_thresh for r in members if r.p_thresh is not None})
         if len(thresholds) < 2:
             continue
         fig, axes = plt.subplots(1, 4, figsize=(14, 3.4))
         for ax, metric in zip(axes, METRICS):
-            stats = [_mean_std([r.summary[metric] for r in members if r.p_thresh == p]) for p in thresholds]
+            stats = [mean_std([r.summary[metric] for r in members if r.p_thresh == p]) for p in thresholds]
             ax.errorbar(thresholds, [m for m, *_ in stats], yerr=[s for _, s, *_ in stats], marker="o", capsize=3,
                         color=COLORS.get(algo))
             ax.set(xlabel="p_thresh", title=metric.replace("_", " "))
             ax.grid(alpha=0.3)
-        fig.suptitle(f"{TASK_TITLES.get(task, task)}, {_title(algo, setting)}: p_thresh sweep")
-        _save(fig, out / f"fig4_{task}_{algo}{_file_suffix(setting)}.png", written)
+        fig.suptitle(f"{TASK_TITLES.get(task, task)}, {title(algo, setting)}: p_thresh sweep")
+        _save(fig, out / f"fig4_{task}_{algo}{file_suffix(setting)}.png", written)
     return written
 
 
@@ -259,7 +260,7 @@ def draw_figure5(task: str, algo: str, setting: str, members: list[RunFolder]):
         else:
             text = "no triggered reset in " + ", ".join(label for _, label in quiet)
         _panel_note(ax, text, "centre" if len(quiet) == len(members) else "lower right")
-    ax.set(title=f"{TASK_TITLES.get(task, task)}, {_title(algo, setting)}: state before each trigger",
+    ax.set(title=f"{TASK_TITLES.get(task, task)}, {title(algo, setting)}: state before each trigger",
            xlabel="steps (forward + reset)", ylabel=_curriculum_label(members[0]))
     ax.set_xlim(0, max(run.summary.get("steps", 0) for run in members) or None)  # the whole run, quiet stretches too
     ax.grid(alpha=0.3)
@@ -271,9 +272,6 @@ def draw_figure5(task: str, algo: str, setting: str, members: list[RunFolder]):
 def cliff_edge(run: RunFolder) -> float | None:
     """The cliff's edge on Fig. 5's axis: the task's ``edge`` where Fig. 5 plots the x position (observation
     entry 0, the cliff tasks' curriculum), else None."""
-    from omegaconf import OmegaConf
-    from torchrl_reset_recipes.analysis.stretches import run_task
-
     cfg, spec = run_task(run.folder)
     edge = getattr(getattr(spec, "env_class", None), "edge", None)
     return None if edge is None or OmegaConf.select(cfg, "task.curriculum.index") != 0 else float(edge)
@@ -281,8 +279,8 @@ def cliff_edge(run: RunFolder) -> float | None:
 
 def figure5(runs: list[RunFolder], out: Path) -> list[Path]:
     written = []
-    for (task, algo, setting), members in _by(runs, "task", "algo", "setting").items():
-        _save(draw_figure5(task, algo, setting, members), out / f"fig5_{task}_{algo}{_file_suffix(setting)}.png",
+    for (task, algo, setting), members in by(runs, "task", "algo", "setting").items():
+        _save(draw_figure5(task, algo, setting, members), out / f"fig5_{task}_{algo}{file_suffix(setting)}.png",
               written)
     return written
 
@@ -454,7 +452,7 @@ def draw_diagnostics(task: str, algo: str, setting: str, members: list[RunFolder
                       bbox_to_anchor=(0.5, -0.16), ncol=2, frameon=False)
     fig.legend(handles=[Line2D([], [], color=c, lw=2, label=label) for c, label in zip(colors, labels)],
                loc="outside upper right", ncol=min(len(runs), 6), fontsize=DIAGNOSTICS_LEGEND_SIZE, frameon=False)
-    fig.suptitle(f"{TASK_TITLES.get(task, task)}, {_title(algo, setting)}: diagnostics")
+    fig.suptitle(f"{TASK_TITLES.get(task, task)}, {title(algo, setting)}: diagnostics")
     return fig
 
 
@@ -462,18 +460,16 @@ def figure_diagnostics(runs: list[RunFolder], out: Path) -> list[Path]:
     """One diagnostics figure per task, algorithm and setting whose runs logged diagnostics
     (:func:`draw_diagnostics`)."""
     written = []
-    for (task, algo, setting), members in _by(runs, "task", "algo", "setting").items():
+    for (task, algo, setting), members in by(runs, "task", "algo", "setting").items():
         fig = draw_diagnostics(task, algo, setting, members)
         if fig is not None:
-            _save(fig, out / f"diagnostics_{task}_{algo}{_file_suffix(setting)}.png", written)
+            _save(fig, out / f"diagnostics_{task}_{algo}{file_suffix(setting)}.png", written)
     return written
 
 
 def _curriculum_label(run: RunFolder) -> str:
     config = run.folder / "config.yaml"
     if config.exists():
-        from omegaconf import OmegaConf
-
         label = OmegaConf.select(OmegaConf.load(config), "task.curriculum.label")
         if label:
             return str(label)

@@ -40,7 +40,7 @@ from pathlib import Path
 import numpy as np
 
 
-from torchrl_reset_recipes.analysis.stretches import _k, csv_rows, markdown, resets_by_start, run_task, within
+from torchrl_reset_recipes.analysis.stretches import thousands, csv_rows, markdown, resets_by_start, run_task, within
 
 __all__ = ["candidate_actions", "rollout", "stopping_distance", "escapes", "first_escape", "verdicts", "stretch_table", "main"]
 
@@ -186,7 +186,7 @@ def stretch_table(run: Path, found: list[dict], window: int, upto: int | None = 
         here = [v for v in found if within(v["frames"], start, end)]
         saved = [v for v in here if v["verdict"] == "saved"]
         table.append({
-            "steps": f"{_k(start)}-{_k(end)}", "triggers": len(here),
+            "steps": f"{thousands(start)}-{thousands(end)}", "triggers": len(here),
             **{verdict: sum(v["verdict"] == verdict for v in here) for verdict in VERDICTS},
             "saved: median x": f"{statistics.median(v['x'] for v in saved):.3g}" if saved else "",
             "saved, then lost in the reset": sum(after.get(v["frames"], {}).get("irrecoverable") == "1" for v in saved),

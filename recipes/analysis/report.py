@@ -39,11 +39,11 @@ from pathlib import Path
 
 from torchrl_reset_recipes.analysis.figures import (figure3, figure4, figure5, figure_diagnostics)
 from torchrl_reset_recipes.analysis.runs import (PAPER_TABLE1, TASK_TITLES, METRICS, RunFolder, named_settings,
-                                                 _is_paper_setting,
-                                                 _title, find_runs,
-                                                 _mean_std, _reached,
-                                                 _complete,
-                                                 _row_order, _by)
+                                                 is_paper_setting,
+                                                 title, find_runs,
+                                                 mean_std, reached,
+                                                 complete,
+                                                 row_order, by)
 
 
 def _cell(mean: float, std: float, low: float = math.nan, high: float = math.nan, *, kind: str) -> str:
@@ -65,25 +65,25 @@ def _paper(value, kind: str) -> str:
 def table1(runs: list[RunFolder]) -> str:
     """Markdown table: one row per (task, algo, setting, p_thresh) group, mean ± std over its seeds, paper beside
     (the paper's numbers only on its own setting's rows)."""
-    groups, short = _complete(_by(runs, "task", "algo", "setting", "p_thresh"))
+    groups, short = complete(by(runs, "task", "algo", "setting", "p_thresh"))
     kinds = ("return", "count", "share", "share")
     lines = [
         "| task | algo | p_thresh | seeds | steps | avg return | manual resets | forward share | success rate |",
         "|---|---|---|---|---|---|---|---|---|",
     ]
-    for (task, algo, setting, p_thresh), members in sorted(groups.items(), key=lambda kv: _row_order(*kv[0])):
-        paper = PAPER_TABLE1.get((task, algo)) if _is_paper_setting(setting) else None
+    for (task, algo, setting, p_thresh), members in sorted(groups.items(), key=lambda kv: row_order(*kv[0])):
+        paper = PAPER_TABLE1.get((task, algo)) if is_paper_setting(setting) else None
         cells = []
         for metric, kind, index in zip(METRICS, kinds, range(4)):
-            cell = _cell(*_mean_std([r.summary[metric] for r in members]), kind=kind)
+            cell = _cell(*mean_std([r.summary[metric] for r in members]), kind=kind)
             if paper is not None:
                 cell += f" (paper {_paper(paper[index], kind)})"
             cells.append(cell)
         steps = "/".join(map(str, sorted({r.summary.get("steps") for r in members})))
-        if not all(_reached(r) for r in members):
+        if not all(reached(r) for r in members):
             steps += " (in progress)"
         lines.append(
-            f"| {TASK_TITLES.get(task, task)} | {_title(algo, setting)} | {p_thresh} | {len(members)} | "
+            f"| {TASK_TITLES.get(task, task)} | {title(algo, setting)} | {p_thresh} | {len(members)} | "
             f"{steps} | " + " | ".join(cells) + " |"
         )
     budget = {r.budget for r in runs} - {None}
@@ -102,7 +102,7 @@ def table1(runs: list[RunFolder]) -> str:
                   *named]
     if short:
         lines.append("Left out of the means, still short of the budget: " + "; ".join(
-            f"{_title(r.algo, r.setting)} seed {r.summary['seed']} at {r.summary.get('steps')} steps"
+            f"{title(r.algo, r.setting)} seed {r.summary['seed']} at {r.summary.get('steps')} steps"
             for r in sorted(short, key=lambda r: (r.algo, r.setting, r.summary["seed"]))) + ".")
     lines += [
         "",
@@ -110,15 +110,15 @@ def table1(runs: list[RunFolder]) -> str:
         "| saved | manual resets per 1k steps, last quarter |",
         "|---|---|---|---|---|---|---|---|---|---|",
     ]
-    for (task, algo, setting, p_thresh), members in sorted(groups.items(), key=lambda kv: _row_order(*kv[0])):
-        manual = _mean_std([r.summary["manual_resets"] for r in members])
-        episodic = _mean_std([r.summary["episodic_resets"] for r in members])
-        saved = _mean_std([r.summary["episodic_resets"] - r.summary["manual_resets"] for r in members])
-        late = _mean_std([r.summary["late_manual_rate"] for r in members])
-        by_steps = _mean_std([r.summary["baseline_hard_resets"] for r in members])
-        saved_by_steps = _mean_std([r.summary["baseline_hard_resets"] - r.summary["manual_resets"] for r in members])
+    for (task, algo, setting, p_thresh), members in sorted(groups.items(), key=lambda kv: row_order(*kv[0])):
+        manual = mean_std([r.summary["manual_resets"] for r in members])
+        episodic = mean_std([r.summary["episodic_resets"] for r in members])
+        saved = mean_std([r.summary["episodic_resets"] - r.summary["manual_resets"] for r in members])
+        late = mean_std([r.summary["late_manual_rate"] for r in members])
+        by_steps = mean_std([r.summary["baseline_hard_resets"] for r in members])
+        saved_by_steps = mean_std([r.summary["baseline_hard_resets"] - r.summary["manual_resets"] for r in members])
         lines.append(
-            f"| {TASK_TITLES.get(task, task)} | {_title(algo, setting)} | {p_thresh} | {len(members)} | "
+            f"| {TASK_TITLES.get(task, task)} | {title(algo, setting)} | {p_thresh} | {len(members)} | "
             f"{_cell(*manual, kind='count')} | {_cell(*episodic, kind='count')} | {_cell(*saved, kind='count')} | "
             f"{_cell(*by_steps, kind='count')} | {_cell(*saved_by_steps, kind='count')} | {_cell(*late, kind='return')} |"
         )

@@ -12,8 +12,11 @@ from collections import defaultdict
 from pathlib import Path
 
 import numpy as np
+from omegaconf import OmegaConf
 
-from torchrl_reset_recipes.analysis.screen import bootstrap_interval
+from torchrl_reset_recipes import CONF
+from torchrl_reset_recipes.training.absent_keys import ABSENT_KEYS
+
 
 
 #: The paper's Table 1 (1.5M steps, mean of 5 seeds): return, manual resets, forward share, success rate.
@@ -168,6 +171,25 @@ class RunFolder:
         return out
 
 
+
+def bootstrap_interval(values, confidence: float = 0.95) -> tuple[float, float, float]:
+    """``(mean, low, high)``: the mean and its bootstrap interval (BCa, 10,000 resamples, fixed seed), NaN
+    values left out; the interval is NaN below three values and collapses to the mean when all are equal."""
+    from scipy.stats import bootstrap
+
+    data = np.asarray([v for v in values if not math.isnan(v)], dtype=float)
+    if data.size == 0:
+        return math.nan, math.nan, math.nan
+    mean = float(data.mean())
+    if data.size < 3:
+        return mean, math.nan, math.nan
+    if np.all(data == data[0]):
+        return mean, mean, mean
+    result = bootstrap((data,), np.mean, confidence_level=confidence, n_resamples=10_000, method="BCa",
+                       rng=np.random.default_rng(0))
+    low, high = result.confidence_interval
+    return mean, float(low), float(high)
+
 def _flatten(node, prefix: str = "") -> dict:
     """A config as ``{"algo.initial_logit_bias": -4, ...}`` (lists as tuples), without ``NOT_A_SETTING``."""
     out = {}
@@ -187,8 +209,7 @@ def recipe_defaults(task: str, algo: str) -> dict:
     """The settings ``train.py preset=paper task=<task> algo=<algo>`` runs with (the paper's preset), flattened; empty
     for a task or algorithm this checkout does not know. Keys that older runs' configs lack (a setting
     added since) take these values."""
-    from torchrl_reset_recipes import CONF as conf
-
+    conf = CONF
     if not (conf / "task" / f"{task}.yaml").exists() or not (conf / "algo" / f"{algo}.yaml").exists():
         return {}
     from hydra import compose, initialize_config_dir
@@ -212,7 +233,7 @@ def assign_settings(runs: list[RunFolder]) -> None:
     (``run.setting``: ``""`` where all agree, ``"paper's setting"`` for the recipe's defaults, else
     ``key=value`` overrides such as ``algo.initial_logit_bias=-4``; runs under a named folder: its name, then
     what differs between them), so that the report keeps them apart."""
-    for (task, algo), members in _by(runs, "task", "algo").items():
+    for (task, algo), members in by(runs, "task", "algo").items():
         defaults = recipe_defaults(task, algo)
         settings = [run_settings(run, defaults) for run in members]
         # a named folder is its own setting; within it, runs are told apart by what differs between them
@@ -229,8 +250,6 @@ def run_settings(run: RunFolder, defaults: dict) -> dict:
     """What ``run`` ran with, flattened: its ``config.yaml``, a key it lacks read as what its absence meant
     when it ran (``absent_keys.ABSENT_KEYS``: the behaviour before the key existed), any other key as the
     recipe's default."""
-    from torchrl_reset_recipes.training.absent_keys import ABSENT_KEYS
-    from omegaconf import OmegaConf
 
     if run.config is None:
         return dict(defaults)
@@ -265,7 +284,7 @@ def _setting_labels(settings: list[dict], defaults: dict, among: bool = False) -
 def named_settings(runs: list[RunFolder]) -> list[str]:
     """For each named folder, per algorithm, what its runs set apart from the recipe's paper preset."""
     lines = []
-    for (source, task, algo), members in sorted(_by([r for r in runs if r.source], "source", "task", "algo").items()):
+    for (source, task, algo), members in sorted(by([r for r in runs if r.source], "source", "task", "algo").items()):
         defaults = recipe_defaults(task, algo)
         changed = sorted({f"{k}={_value_text(own[k])}" for own in (run_settings(r, defaults) for r in members)
                           for k in own if defaults and k in defaults and repr(own[k]) != repr(defaults[k])
@@ -275,18 +294,18 @@ def named_settings(runs: list[RunFolder]) -> list[str]:
     return lines
 
 
-def _is_paper_setting(setting: str) -> bool:
+def is_paper_setting(setting: str) -> bool:
     """The only setting of its group, or the recipe's defaults (the paper's)."""
     return setting in ("", PAPER_SETTING)
 
 
-def _title(algo: str, setting: str) -> str:
+def title(algo: str, setting: str) -> str:
     return ALGO_TITLES.get(algo, algo) + (f" ({setting})" if setting else "")
 
 
-def _file_suffix(setting: str) -> str:
+def file_suffix(setting: str) -> str:
     """``""`` for the only or the paper's setting, else the setting as a file-name part."""
-    if _is_paper_setting(setting):
+    if is_paper_setting(setting):
         return ""
     return "_" + re.sub(r"[^A-Za-z0-9_.-]+", "_", setting.replace("=", ""))
 
@@ -330,9 +349,9 @@ def find_runs(paths: list[Path], budget: int | None = None, names: dict[Path, st
     return runs
 
 
-def _mean_std(values: list[float]) -> tuple[float, float, float, float]:
+def mean_std(values: list[float]) -> tuple[float, float, float, float]:
     """Mean, population standard deviation and, over three or more values, the mean's bootstrap 95% interval
-    (``screen.bootstrap_interval``; NaN below three)."""
+    (:func:`bootstrap_interval`; NaN below three)."""
     values = [v for v in values if v is not None and not (isinstance(v, float) and math.isnan(v))]
     if not values:
         return math.nan, math.nan, math.nan, math.nan
@@ -340,28 +359,28 @@ def _mean_std(values: list[float]) -> tuple[float, float, float, float]:
     return float(np.mean(values)), float(np.std(values)) if len(values) > 1 else 0.0, low, high
 
 
-def _reached(run: RunFolder) -> bool:
+def reached(run: RunFolder) -> bool:
     return run.budget is None or run.summary.get("steps", 0) >= run.budget
 
 
-def _complete(groups: dict) -> tuple[dict, list[RunFolder]]:
+def complete(groups: dict) -> tuple[dict, list[RunFolder]]:
     """With a budget, each group's runs that reached it; runs short of it are left out of the means
     (listed apart) unless no run of their group reached it (the row is then marked in progress)."""
     kept, short = {}, []
     for key, members in groups.items():
-        done = [r for r in members if _reached(r)]
+        done = [r for r in members if reached(r)]
         kept[key] = done or members
-        short += [r for r in members if not _reached(r)] if done else []
+        short += [r for r in members if not reached(r)] if done else []
     return kept, short
 
 
-def _row_order(task: str, algo: str, setting: str, p_thresh) -> tuple:
+def row_order(task: str, algo: str, setting: str, p_thresh) -> tuple:
     order = list(TASK_TITLES)
-    return (order.index(task) if task in order else 99, algo, not _is_paper_setting(setting), setting,
+    return (order.index(task) if task in order else 99, algo, not is_paper_setting(setting), setting,
             p_thresh or 0)
 
 
-def _by(runs: list[RunFolder], *attributes: str) -> dict[tuple, list[RunFolder]]:
+def by(runs: list[RunFolder], *attributes: str) -> dict[tuple, list[RunFolder]]:
     groups = defaultdict(list)
     for run in runs:
         groups[tuple(getattr(run, a) for a in attributes)].append(run)

@@ -30,6 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from torchrl_reset_recipes import TRAIN_SCRIPT
+from torchrl_reset_recipes.analysis.runs import bootstrap_interval
 
 __all__ = ["seed_list", "named_folders", "seed_runs", "grid_command", "read_seed", "read_configuration",
            "bootstrap_interval", "screening_table", "screening_figure", "HOLDS_AT", "main"]
@@ -127,25 +128,6 @@ def read_configuration(folder: Path) -> list[dict]:
     """Every seed of one configuration that has a summary, by seed."""
     return sorted((read_seed(p) for p in folder.glob("seed*") if (p / "summary.json").exists()),
                   key=lambda row: row["seed"])
-
-
-def bootstrap_interval(values, confidence: float = 0.95) -> tuple[float, float, float]:
-    """``(mean, low, high)``: the mean and its bootstrap interval (BCa, 10,000 resamples, fixed seed), NaN
-    values left out; the interval is NaN below three values and collapses to the mean when all are equal."""
-    from scipy.stats import bootstrap
-
-    data = np.asarray([v for v in values if not math.isnan(v)], dtype=float)
-    if data.size == 0:
-        return math.nan, math.nan, math.nan
-    mean = float(data.mean())
-    if data.size < 3:
-        return mean, math.nan, math.nan
-    if np.all(data == data[0]):
-        return mean, mean, mean
-    result = bootstrap((data,), np.mean, confidence_level=confidence, n_resamples=10_000, method="BCa",
-                       rng=np.random.default_rng(0))
-    low, high = result.confidence_interval
-    return mean, float(low), float(high)
 
 
 def _value(value: float, kind: str) -> str:

@@ -122,7 +122,7 @@ def stretches(run: Path, window: int, upto: int | None = None) -> list[dict]:
         fired = [t for t in triggers if within(int(t["frames"]), start, end)]
         ended = [r for r in resets if within(int(r["frames"]), start, end)]
         success = sum(r["outcome"] == "success" for r in ended)
-        row = {"steps": f"{_k(start)}-{_k(end)}", "triggers": len(fired)}
+        row = {"steps": f"{thousands(start)}-{thousands(end)}", "triggers": len(fired)}
         if at_start:
             row["at the start"] = sum(t.get("at_initial_state") == "1" for t in fired)
         if cliff:
@@ -144,7 +144,7 @@ def stretches(run: Path, window: int, upto: int | None = None) -> list[dict]:
     return out
 
 
-def _k(frames: int) -> str:
+def thousands(frames: int) -> str:
     return f"{frames // 1000}k" if frames % 1000 == 0 and frames else str(frames)
 
 

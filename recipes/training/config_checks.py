@@ -13,11 +13,10 @@ from torchrl_reset_recipes import CONF
 from torchrl_reset_recipes.training.absent_keys import setting
 from torchrl_reset.actor_heads import ACTOR_HEADS
 from torchrl_reset_recipes.training.reset_agents import KINDS
-from torchrl_reset_recipes.training.run_spec import reset_horizon, should_resume
 from torchrl_reset_recipes.training.checkpoints import Checkpoints, identity_differences, no_intact_checkpoint
 from torchrl_reset_envs import TASKS
 
-__all__ = ["ALGOS", "ConfigError", "validate", "recipe_settings", "unknown_settings", "RETIRED_KEYS",
+__all__ = ["ALGOS", "ConfigError", "validate", "reset_horizon", "should_resume", "recipe_settings", "unknown_settings", "RETIRED_KEYS",
            "retired_key_problem"]
 
 
@@ -37,6 +36,22 @@ CHOICES = {"exploration.restart": ("never", "episode"), "update_order": ("releas
 
 class ConfigError(ValueError):
     """A configuration that cannot run; raised before anything is built."""
+
+
+def reset_horizon(cfg: DictConfig) -> int:
+    """H_r: ``reset.max_steps``, or 2 H_f where it is null."""
+    return 2 * int(cfg.task.forward_horizon) if cfg.reset.max_steps is None else int(cfg.reset.max_steps)
+
+
+def should_resume(cfg: DictConfig) -> bool:
+    """``resume``: true, false, or auto (continue from the run folder's checkpoint when it has one:
+    launching the same grid again continues every run where it stopped). A checkpoint is what
+    :meth:`Checkpoints.folders` lists, intact or not: resuming takes the newest intact one
+    (:meth:`Checkpoints.latest`), and a folder whose checkpoints are all damaged stops with an error instead
+    of starting over."""
+    if cfg.resume == "auto":
+        return bool(Checkpoints(Path(cfg.run_dir) / "checkpoints").folders())
+    return bool(cfg.resume)
 
 
 def actor_problems(cfg: DictConfig) -> list[str]:

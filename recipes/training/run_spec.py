@@ -10,14 +10,13 @@ from __future__ import annotations
 
 import os
 from dataclasses import dataclass, field
-from pathlib import Path
 from types import MappingProxyType
 from typing import Any, Mapping
 
 from omegaconf import DictConfig, OmegaConf
 
 from torchrl_reset_recipes.training.absent_keys import ABSENT_KEYS
-from torchrl_reset_recipes.training.checkpoints import Checkpoints
+from torchrl_reset_recipes.training.config_checks import reset_horizon, should_resume, validate
 from torchrl_reset_recipes.training.reset_agents import KINDS, ResetAgentKind
 
 __all__ = ["RunSpec", "run_spec", "DEFAULTS", "FALLBACKS", "reset_horizon", "torch_threads", "should_resume"]
@@ -67,8 +66,6 @@ class RunSpec:
 def run_spec(cfg: DictConfig, *, check: bool = True) -> RunSpec:
     """The :class:`RunSpec` of ``cfg``, refused first (:class:`~.config_checks.ConfigError`) if it cannot run."""
     if check:
-        from torchrl_reset_recipes.training.config_checks import validate
-
         validate(cfg)
     kind = KINDS[cfg.algo.name]
     settings = {key: _plain(OmegaConf.select(cfg, key, default=value)) for key, value in DEFAULTS.items()}
@@ -82,22 +79,6 @@ def _plain(value):
     if OmegaConf.is_config(value):
         return OmegaConf.to_container(value, resolve=True)
     return value
-
-
-def reset_horizon(cfg: DictConfig) -> int:
-    """H_r: ``reset.max_steps``, or 2 H_f where it is null."""
-    return 2 * int(cfg.task.forward_horizon) if cfg.reset.max_steps is None else int(cfg.reset.max_steps)
-
-
-def should_resume(cfg: DictConfig) -> bool:
-    """``resume``: true, false, or auto (continue from the run folder's checkpoint when it has one:
-    launching the same grid again continues every run where it stopped). A checkpoint is what
-    :meth:`Checkpoints.folders` lists, intact or not: resuming takes the newest intact one
-    (:meth:`Checkpoints.latest`), and a folder whose checkpoints are all damaged stops with an error instead
-    of starting over."""
-    if cfg.resume == "auto":
-        return bool(Checkpoints(Path(cfg.run_dir) / "checkpoints").folders())
-    return bool(cfg.resume)
 
 
 def torch_threads(cfg: DictConfig) -> int:

@@ -4,7 +4,7 @@ from __future__ import annotations
 import torch
 from tensordict import TensorDictBase
 
-from ..rce_loss import RCELoss, _as_tuple, actor_loss, classifier_loss
+from ..rce_loss import RCELoss, key_tuple, actor_loss, classifier_loss
 from .ensemble import FastEnsembleValueOperator
 
 __all__ = ["FastRCELoss"]
@@ -45,7 +45,7 @@ class FastRCELoss(RCELoss):
         keys = self.tensor_keys
         replay, states, action, examples = self._read(tensordict)
         batch = replay.shape[0]
-        slots = replay.get(_as_tuple(keys.example_state) + _as_tuple(keys.example_index), None)
+        slots = replay.get(key_tuple(keys.example_state) + key_tuple(keys.example_index), None)
         net = self.classifier_network
 
         with torch.no_grad(), self._label_mode():
