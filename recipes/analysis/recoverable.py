@@ -1,7 +1,7 @@
 """Did the trigger come in time? Whether the states before a run's triggered resets could still be saved.
 
     python recipes/analysis/recoverable.py runs/tier2/cliff_cheetah/ours/seed0 --window 25000
-    python recipes/analysis/recoverable.py results/100000-tier2/cliff_cheetah/*/seed0 --csv-dir /tmp/verdicts
+    python recipes/analysis/recoverable.py results/table1-cliff-cheetah/cliff_cheetah/*/seed0 --csv-dir /tmp/verdicts
 
 On the cliff tasks a trigger protects the system only if the state it stops in can still be brought
 back. ``triggers.csv`` keeps the whole observation before each trigger (the cliff tasks observe

@@ -17,7 +17,7 @@ A key that an older run's ``config.yaml`` lacks is read as what its absence mean
 setting, labelled ``NAME`` (runs of two versions of the code side by side, which may differ in more
 than their configs), and ``table1.md`` lists what each named folder set apart from the paper preset:
 
-    python recipes/analysis/report.py tier1=results/100000 release=results/100000-release --budget 100000
+    python recipes/analysis/report.py tier1=results/100000 release=results/table1-peg-insert --budget 100000
 
 - ``table1.md``: per task and algorithm, the mean and standard deviation over seeds of the average
   forward return, manual resets, forward share and reset success rate, beside the paper's numbers;

@@ -6,8 +6,8 @@
     # the table (screening.md) and the strip plot (screening.png) of every configuration's runs
     python recipes/analysis/screen.py table runs/screening --out results/screening
     # configurations from folders made elsewhere, side by side (each NAME=FOLDER holds seed<k>/ run folders)
-    python recipes/analysis/screen.py table --config release=results/100000-release/peg_insertion_insert/ours \
-        --config project=results/100000-tanh-normal-auto/peg_insertion_insert/ours --out <folder>
+    python recipes/analysis/screen.py table --config release=results/table1-peg-insert/peg_insertion_insert/ours \
+        --config project=results/reset-actor-paper-sizes/peg_insertion_insert/ours --out <folder>
 
 ``run`` puts seed ``k`` of configuration ``NAME`` in ``<root>/NAME/seed<k>`` (``--root``, default
 ``runs/screening``) with ``resume=auto``: a grid stopped part-way is continued by the same command. ``table``

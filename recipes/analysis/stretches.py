@@ -1,7 +1,7 @@
 """A run, stretch by stretch: how its trigger, forward share and resets changed over training.
 
     python recipes/analysis/stretches.py runs/peg_insertion_insert/ours/seed0 --window 25000
-    python recipes/analysis/stretches.py results/100000-release/peg_insertion_insert/*/seed0 --window 10000 --upto 30000
+    python recipes/analysis/stretches.py results/table1-peg-insert/peg_insertion_insert/*/seed0 --window 10000 --upto 30000
 
 For each run folder and each ``--window``-step stretch (forward and reset steps together) a markdown
 table row, read from the run's ``progress.csv``, ``resets.csv`` and ``triggers.csv``:

@@ -1,4 +1,7 @@
-"""LNT-sparse's Q-ensemble trained afresh on one run's rows under each of the authors' K-critic options.
+"""Frozen: its question is decided. It last ran at commit 271779f, as results/lnt-sparse/probes/offline_options.py; to run it there:
+``git worktree add ../frozen 271779f && cd ../frozen && python results/lnt-sparse/probes/offline_options.py --help``.
+
+LNT-sparse's Q-ensemble trained afresh on one run's rows under each of the authors' K-critic options.
 
     python results/lnt-sparse/probes/offline_options.py \
         runs/lnt-sparse/peg_insertion_insert/lnt_sparse/seed0/checkpoints/step_0000025000 \

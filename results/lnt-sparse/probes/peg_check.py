@@ -1,4 +1,7 @@
-"""How loose is peg-insertion (insert)'s at-initial-state check, ``d_start < 0.2``?
+"""Frozen: its question is decided. It last ran at commit 271779f, as results/lnt-sparse/probes/peg_check.py; to run it there:
+``git worktree add ../frozen 271779f && cd ../frozen && python results/lnt-sparse/probes/peg_check.py --help``.
+
+How loose is peg-insertion (insert)'s at-initial-state check, ``d_start < 0.2``?
 
 LNT-sparse's reward is this check (1 where it holds, else 0). The more of the states the agents visit pass
 it, the denser that "sparse" reward is. This probe measures, on the task's own model:
@@ -15,9 +18,9 @@ it, the denser that "sparse" reward is. This probe measures, on the task's own m
    inside the check, in all and (``--window``) stretch by stretch.
 
     python results/lnt-sparse/probes/peg_check.py --episodes 50 \\
-        --runs results/100000-release/peg_insertion_insert/*/seed*
+        --runs results/table1-peg-insert/peg_insertion_insert/*/seed*
     python results/lnt-sparse/probes/peg_check.py --episodes 2 --samples 20 --window 10000 \\
-        --runs results/100000-release/peg_insertion_insert/ours/seed0 results/100000-tanh-normal-auto/peg_insertion_insert/ours/seed0
+        --runs results/table1-peg-insert/peg_insertion_insert/ours/seed0 results/reset-actor-paper-sizes/peg_insertion_insert/ours/seed0
 """
 from __future__ import annotations
 

@@ -1,4 +1,7 @@
-"""LNT-sparse's trained Q-ensembles side by side: why the release's semantics keep the trigger firing.
+"""Frozen: its question is decided. It last ran at commit 271779f, as results/lnt-sparse/probes/trained_ensembles.py; to run it there:
+``git worktree add ../frozen 271779f && cd ../frozen && python results/lnt-sparse/probes/trained_ensembles.py --help``.
+
+LNT-sparse's trained Q-ensembles side by side: why the release's semantics keep the trigger firing.
 
     python results/lnt-sparse/probes/trained_ensembles.py \\
         project_seed0=runs/lnt-sparse/peg_insertion_insert/lnt_sparse/seed0:step_0000025000 \\

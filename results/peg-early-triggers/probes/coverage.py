@@ -1,4 +1,7 @@
-"""Where the reset agent's classifiers get their rows from: how far from the start the states of each agent's
+"""Frozen: its question is decided. It last ran at commit 271779f, as results/peg-early-triggers/probes/coverage.py; to run it there:
+``git worktree add ../frozen 271779f && cd ../frozen && python results/peg-early-triggers/probes/coverage.py --help``.
+
+Where the reset agent's classifiers get their rows from: how far from the start the states of each agent's
 replay rows lie, for the rows written in a stretch of a run.
 
     python results/peg-early-triggers/probes/coverage.py \\

@@ -1,4 +1,7 @@
-"""The protocol's measurements for each run (README: Runs), seed by seed, configurations side by side.
+"""Frozen: its question is decided. It last ran at commit 271779f, as results/peg-early-triggers/probes/measure.py; to run it there:
+``git worktree add ../frozen 271779f && cd ../frozen && python results/peg-early-triggers/probes/measure.py --help``.
+
+The protocol's measurements for each run (README: Runs), seed by seed, configurations side by side.
 
     python results/peg-early-triggers/probes/measure.py \\
         project_actor=runs/100k-tanh_normal_auto/peg_insertion_insert/ours \\

@@ -1,4 +1,7 @@
-"""Reset episodes from the states where the trigger fired inside the at-initial-state check: how many the
+"""Frozen: its question is decided. It last ran at commit 271779f, as results/peg-early-triggers/probes/resets_from_the_start.py; to run it there:
+``git worktree add ../frozen 271779f && cd ../frozen && python results/peg-early-triggers/probes/resets_from_the_start.py --help``.
+
+Reset episodes from the states where the trigger fired inside the at-initial-state check: how many the
 minimum of 5 reset steps turns into failures.
 
     python results/peg-early-triggers/probes/resets_from_the_start.py runs/peg-early-triggers/learn_from_forward/peg_insertion_insert/ours/seed0 \\
