@@ -38,6 +38,9 @@ class TaskSpec:
         p_thresh: the reset trigger's success-probability threshold.
         has_irrecoverable: whether the task has irrecoverable states.
         reconstructed: whether the task's definitions are ours (not from the authors' release).
+        title: the task's name in tables and figures (``"cliff-cheetah"``).
+        paper: the paper's Table 1 row of each algorithm (1.5M steps, mean of 5 seeds): ``{algo: (return,
+            manual resets, forward share, reset success rate)}``; empty for a task the paper does not have.
     """
 
     name: str
@@ -48,6 +51,8 @@ class TaskSpec:
     p_thresh: float = 0.0
     has_irrecoverable: bool = False
     reconstructed: bool = False
+    title: str = ""
+    paper: dict[str, tuple[float, int, float, float]] = field(default_factory=dict)
 
     @property
     def gym_id(self) -> str | None:
@@ -58,14 +63,33 @@ class TaskSpec:
 TASKS: dict[str, TaskSpec] = {
     spec.name: spec
     for spec in (
-        TaskSpec("cliff_cheetah", "CliffCheetah-v0", CliffCheetahEnv, {}, 500, 0.05, True),
-        TaskSpec("cliff_walker", "CliffWalker-v0", CliffWalkerEnv, {}, 500, 0.05, True),
-        TaskSpec("peg_insertion_insert", "PegInsertionInsert-v0", PegInsertionEnv, {"forward": "insert"}, 100, 0.1),
-        TaskSpec("peg_insertion_remove", "PegInsertionRemove-v0", PegInsertionEnv, {"forward": "remove"}, 100, 0.1),
-        TaskSpec("ball_in_cup_catch", "BallInCupCatch-v0", BallInCupEnv, {"forward": "catch"}, 100, 0.1, reconstructed=True),
-        TaskSpec("ball_in_cup_throw", "BallInCupThrow-v0", BallInCupEnv, {"forward": "throw"}, 100, 0.1, reconstructed=True),
-        TaskSpec("ur3_peg", None, UR3Env, {"task": "peg"}, 100, 0.1, reconstructed=True),
-        TaskSpec("ur3_reacher", None, UR3Env, {"task": "reacher"}, 100, 0.1, True, reconstructed=True),
+        # the paper's Table 1 rows: (return, manual resets, forward share, reset success rate) per algorithm, in
+        # the paper's order of tasks
+        TaskSpec("ball_in_cup_catch", "BallInCupCatch-v0", BallInCupEnv, {"forward": "catch"}, 100, 0.1,
+                 reconstructed=True, title="ball-in-cup (catch)",
+                 paper={"lnt": (10.38, 276, 0.857, 0.993), "ours": (19.51, 331, 0.797, 0.968),
+                        "lnt_sparse": (5.48, 358, 0.890, 0.975)}),
+        TaskSpec("peg_insertion_insert", "PegInsertionInsert-v0", PegInsertionEnv, {"forward": "insert"}, 100, 0.1,
+                 title="peg-insertion (insert)",
+                 paper={"lnt": (30.50, 251, 0.717, 0.985), "ours": (29.20, 343, 0.663, 0.966),
+                        "lnt_sparse": (1.60, 7175, 0.026, 0.744)}),
+        TaskSpec("cliff_cheetah", "CliffCheetah-v0", CliffCheetahEnv, {}, 500, 0.05, True, title="cliff-cheetah",
+                 paper={"lnt": (4.77, 835, 0.150, 0.857), "ours": (1.96, 371, 0.314, 0.948),
+                        "lnt_sparse": (2.96, 765, 0.154, 0.803)}),
+        TaskSpec("ball_in_cup_throw", "BallInCupThrow-v0", BallInCupEnv, {"forward": "throw"}, 100, 0.1,
+                 reconstructed=True, title="ball-in-cup (throw)",
+                 paper={"lnt": (33.28, 359, 0.754, 0.991), "ours": (17.75, 1231, 0.479, 0.949),
+                        "lnt_sparse": (31.70, 1527, 0.525, 0.878)}),
+        TaskSpec("peg_insertion_remove", "PegInsertionRemove-v0", PegInsertionEnv, {"forward": "remove"}, 100, 0.1,
+                 title="peg-insertion (remove)",
+                 paper={"lnt": (44.57, 1714, 0.489, 0.931), "ours": (30.27, 2525, 0.326, 0.712),
+                        "lnt_sparse": (0.46, 7407, 0.006, 0.353)}),
+        TaskSpec("cliff_walker", "CliffWalker-v0", CliffWalkerEnv, {}, 500, 0.05, True, title="cliff-walker",
+                 paper={"lnt": (6.65, 1195, 0.057, 0.957), "ours": (6.29, 1305, 0.042, 0.687),
+                        "lnt_sparse": (0.00, 1415, 0.001, 0.949)}),
+        TaskSpec("ur3_peg", None, UR3Env, {"task": "peg"}, 100, 0.1, reconstructed=True, title="UR3 peg"),
+        TaskSpec("ur3_reacher", None, UR3Env, {"task": "reacher"}, 100, 0.1, True, reconstructed=True,
+                 title="UR3 reacher"),
     )
 }
 

@@ -13,6 +13,7 @@ import numpy as np  # noqa: E402
 from omegaconf import OmegaConf  # noqa: E402
 
 from torchrl_reset_recipes.analysis.stretches import run_task
+from torchrl_reset_recipes.training.reset_agents import KINDS
 from torchrl_reset_recipes.analysis.runs import (TASK_TITLES, METRICS, COLORS, RunFolder, is_paper_setting, title,
                                                  file_suffix,
                                                  mean_std, reached,
@@ -323,7 +324,7 @@ def _run_colors(n: int) -> list:
 def _trigger_thresholds(algo: str, members: list[RunFolder]) -> list[tuple[str, float]]:
     """The trigger's threshold lines: ours' p_thresh (the threshold its trigger used), LNT's Q_thresh
     (``algo.threshold`` of the run's config)."""
-    if algo == "ours":
+    if KINDS[algo].scores_probability:
         values = {float(run.p_thresh) for run in members if run.p_thresh is not None}
         return [(f"p_thresh = {v:g}", v) for v in sorted(values)]
     values = {float(v) for v in (_config_value(run, "algo.threshold") for run in members) if v is not None}
@@ -372,10 +373,10 @@ def draw_diagnostics(task: str, algo: str, setting: str, members: list[RunFolder
     if not tables:
         return None
     runs = [run for run, _ in tables]
-    ours = algo == "ours"
-    score = "p: ensemble-mean success probability" if ours else "Q: reset Q-ensemble's minimum"
+    kind = KINDS[algo]
+    probability, score = kind.scores_probability, kind.score_name
     # LNT's trigger takes the members' minimum, so the lowest member is the forward-replay line itself
-    probes = [probe for probe in PROBE_SERIES if ours or probe[0] != "forward_p_min_member"]
+    probes = [probe for probe in PROBE_SERIES if probability or probe[0] != "forward_p_min_member"]
     progress = [run.table("progress.csv") for run in runs]
     stretch = _stretch(progress)
     saturation = any("reset_saturation" in prog for prog in progress)  # runs that logged it (every run since it exists)
@@ -420,9 +421,9 @@ def draw_diagnostics(task: str, algo: str, setting: str, members: list[RunFolder
                                            48), "upper left")
     frames = tables[0][1]["frames"]
     per_row = f"{int(np.median(np.diff(frames))):,} " if len(frames) > 1 else ""  # the steps of one row (log_every)
-    axes[0].set(title=f"trigger score on executed forward steps ({'p' if ours else 'Q'})", xlabel="steps",
+    axes[0].set(title=f"trigger score on executed forward steps ({'p' if probability else 'Q'})", xlabel="steps",
                 ylabel=score)
-    axes[1].set(title=f"reset model ({'p' if ours else 'Q'}): examples, reset replay, forward replay",
+    axes[1].set(title=f"reset model ({'p' if probability else 'Q'}): examples, reset replay, forward replay",
                 xlabel="steps", ylabel=score)
     axes[2].set(title=f"reset success rate per {stretch:,} steps" if stretch else "reset success rate",
                 xlabel="steps", ylabel="successful / ended reset episodes", ylim=(-0.02, 1.02))

@@ -16,48 +16,22 @@ from omegaconf import OmegaConf
 
 from torchrl_reset_recipes import CONF
 from torchrl_reset_recipes.training.absent_keys import ABSENT_KEYS
+from torchrl_reset_recipes.training.reset_agents import KINDS
+from torchrl_reset_envs import TASKS
 
 
 
-#: The paper's Table 1 (1.5M steps, mean of 5 seeds): return, manual resets, forward share, success rate.
-PAPER_TABLE1 = {
-    ("ball_in_cup_catch", "lnt"): (10.38, 276, 0.857, 0.993),
-    ("ball_in_cup_catch", "ours"): (19.51, 331, 0.797, 0.968),
-    ("ball_in_cup_catch", "lnt_sparse"): (5.48, 358, 0.890, 0.975),
-    ("peg_insertion_insert", "lnt"): (30.50, 251, 0.717, 0.985),
-    ("peg_insertion_insert", "ours"): (29.20, 343, 0.663, 0.966),
-    ("peg_insertion_insert", "lnt_sparse"): (1.60, 7175, 0.026, 0.744),
-    ("cliff_cheetah", "lnt"): (4.77, 835, 0.150, 0.857),
-    ("cliff_cheetah", "ours"): (1.96, 371, 0.314, 0.948),
-    ("cliff_cheetah", "lnt_sparse"): (2.96, 765, 0.154, 0.803),
-    ("ball_in_cup_throw", "lnt"): (33.28, 359, 0.754, 0.991),
-    ("ball_in_cup_throw", "ours"): (17.75, 1231, 0.479, 0.949),
-    ("ball_in_cup_throw", "lnt_sparse"): (31.70, 1527, 0.525, 0.878),
-    ("peg_insertion_remove", "lnt"): (44.57, 1714, 0.489, 0.931),
-    ("peg_insertion_remove", "ours"): (30.27, 2525, 0.326, 0.712),
-    ("peg_insertion_remove", "lnt_sparse"): (0.46, 7407, 0.006, 0.353),
-    ("cliff_walker", "lnt"): (6.65, 1195, 0.057, 0.957),
-    ("cliff_walker", "ours"): (6.29, 1305, 0.042, 0.687),
-    ("cliff_walker", "lnt_sparse"): (0.00, 1415, 0.001, 0.949),
-}
+#: The paper's Table 1 (1.5M steps, mean of 5 seeds): return, manual resets, forward share, success rate (the
+#: task registry's rows, ``torchrl_reset_envs.TASKS``)
+PAPER_TABLE1 = {(task, algo): row for task, spec in TASKS.items() for algo, row in spec.paper.items()}
 
-
-TASK_TITLES = {
-    "ball_in_cup_catch": "ball-in-cup (catch)", "peg_insertion_insert": "peg-insertion (insert)",
-    "cliff_cheetah": "cliff-cheetah", "ball_in_cup_throw": "ball-in-cup (throw)",
-    "peg_insertion_remove": "peg-insertion (remove)", "cliff_walker": "cliff-walker",
-}
-
-
-ALGO_TITLES = {"ours": "ours", "lnt": "LNT", "lnt_sparse": "LNT-sparse", "lnt_release": "LNT (release's ensemble)",
-               "lnt_sparse_release": "LNT-sparse (release's ensemble)"}
+#: tables' and figures' names: tasks from the task registry, algorithms from the algorithm registry (``KINDS``)
+TASK_TITLES = {task: spec.title for task, spec in TASKS.items() if spec.paper}
+ALGO_TITLES = {algo: kind.title for algo, kind in KINDS.items()}
+COLORS = {algo: kind.color for algo, kind in KINDS.items()}
 
 
 METRICS = ("average_return", "manual_resets", "forward_share", "reset_success_rate")
-
-
-COLORS = {"ours": "tab:red", "lnt": "tab:blue", "lnt_sparse": "tab:green", "lnt_release": "tab:cyan",
-          "lnt_sparse_release": "tab:olive"}
 
 
 #: Settings that say how a run was executed, recorded or how long it ran, not what it learns (p_thresh is

@@ -44,6 +44,20 @@ class ResetAgentKind:
     scores_probability: bool
     #: how its trigger reduces the members' scores
     reduction: str
+    #: its name in tables and figures, and its colour in the figures
+    title: str
+    color: str
+
+    @property
+    def threshold_name(self) -> str:
+        """What its trigger's threshold is called: p_thresh (a success probability) or Q_thresh (a value)."""
+        return "p_thresh" if self.scores_probability else "Q_thresh"
+
+    @property
+    def score_name(self) -> str:
+        """What its trigger scores, in words."""
+        return ("p: ensemble-mean success probability" if self.scores_probability
+                else "Q: reset Q-ensemble's minimum")
 
     def build(self, spec, actor, obs_dim: int, act_dim: int, parts, head):
         """Its model (the ensemble) and loss module on ``actor`` (whose ``head`` gives the loss its arguments:
@@ -90,6 +104,7 @@ class RCEKind(ResetAgentKind):
     """Ours: recursive classification of examples (RCE) on K classifiers with randomized priors."""
 
     name, critic_loss, scores_probability, reduction = "ours", "loss_classifier", True, "mean"
+    title, color = "ours", "tab:red"
 
     def build(self, spec, actor, obs_dim, act_dim, parts, head):
         cfg = spec.cfg
@@ -167,8 +182,8 @@ class LNTKind(ResetAgentKind):
 
     critic_loss, scores_probability, reduction = "loss_value", False, "min"
 
-    def __init__(self, name: str) -> None:
-        self.name = name
+    def __init__(self, name: str, title: str, color: str) -> None:
+        self.name, self.title, self.color = name, title, color
 
     def build(self, spec, actor, obs_dim, act_dim, parts, head):
         cfg = spec.cfg
@@ -253,9 +268,12 @@ class LNTKind(ResetAgentKind):
         return []
 
 
-KINDS = {"ours": RCEKind(), "lnt": LNTKind("lnt"), "lnt_sparse": LNTKind("lnt_sparse"),
+#: the algorithm registry: each algorithm's kind of reset agent, its title and colour, what its trigger scores
+KINDS = {"ours": RCEKind(), "lnt": LNTKind("lnt", "LNT", "tab:blue"),
+         "lnt_sparse": LNTKind("lnt_sparse", "LNT-sparse", "tab:green"),
          # LNT's ensemble as the authors' K-critic DDPG class runs it (algo.independent_batches and the rest on)
-         "lnt_release": LNTKind("lnt_release"), "lnt_sparse_release": LNTKind("lnt_sparse_release")}
+         "lnt_release": LNTKind("lnt_release", "LNT (release's ensemble)", "tab:cyan"),
+         "lnt_sparse_release": LNTKind("lnt_sparse_release", "LNT-sparse (release's ensemble)", "tab:olive")}
 
 
 def lnt_batch(sample, algo: DictConfig, num_members: int):
