@@ -13,7 +13,7 @@ from .chain import ChainEnv
 from .cliff import CliffCheetahEnv, CliffWalkerEnv
 from .peg import PegInsertionEnv
 from .ur3 import UR3Env
-from .ur3_backends import SafetyLimits, SimBackend, UR3Backend
+from .ur3_backends import SafetyLimits, SimBackend, SimRealtimeBackend, UR3Backend
 from .ur3_rtde import RTDEBackend
 from .tasks import GYM_NAMESPACE, TASKS, TaskSpec, gym_id, make_env, make_gym_env, register_gym_envs, task_spec
 
@@ -33,6 +33,7 @@ __all__ = [
     "RTDEBackend",
     "SafetyLimits",
     "SimBackend",
+    "SimRealtimeBackend",
     "UR3Backend",
     "UR3Env",
     "gym_id",

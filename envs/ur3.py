@@ -13,9 +13,12 @@ from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
 from ._mujoco import tolerance
-from .ur3_backends import RobotState, SafetyLimits, SimBackend, UR3Backend, cup_axis_tilt
+from .ur3_backends import RobotState, SafetyLimits, SimBackend, SimRealtimeBackend, UR3Backend, cup_axis_tilt
 from .ur3_rtde import RTDEBackend
 from .ur3_model import CUP_RADIUS, HOME_Q, PEG_LENGTH, flange_pose
+
+#: the control-period histogram's bins: 0.5 ms wide up to 1 s (2000 bins), then one bin beyond
+PERIOD_BIN, PERIOD_BINS = 0.0005, 2000
 
 __all__ = ["UR3Env", "sim_manual_reset", "console_manual_reset", "PEG_TARGET", "REACHER_GOAL"]
 
@@ -67,7 +70,8 @@ def console_manual_reset(env: UR3Env, prompt: Callable[[str], str] = input, atte
 
 
 class UR3Env(EnvBase):
-    """The UR3 arm for ur3-peg and ur3-reacher, at 25 Hz, on a MuJoCo twin (``backend="sim"``) or the real arm (``"rtde"``).
+    """The UR3 arm for ur3-peg and ur3-reacher, at 25 Hz, on a MuJoCo twin (``backend="sim"`` in simulated time,
+    ``"sim_realtime"`` in wall-clock time) or the real arm (``"rtde"``).
 
     ==================  ==========================================================================
     observation         0-5 cos of the joint angles, 6-11 sin of them; reacher: 12 the stick status
@@ -95,14 +99,17 @@ class UR3Env(EnvBase):
     Real time: on a real-time backend, :meth:`step` sends the action at once, then waits for the end
     of the 40 ms period and reads the state. Between two steps the trainer has :meth:`time_left`
     seconds; a step called after that counts as an overrun (``overruns``), with a warning, and the
-    period restarts from then.
+    period restarts from then. The time between successive commands is kept as a histogram
+    (:meth:`control_period_stats`: its median and 99th percentile). The wall-clock twin
+    (``"sim_realtime"``) is real-time in this sense: the arm runs while the trainer computes.
 
     Manual resets (``env.reset()``) call ``manual_reset(env)``: by default
     :func:`sim_manual_reset` in simulation and :func:`console_manual_reset` on the real arm.
 
     Args:
         task (str): ``"peg"`` or ``"reacher"``.
-        backend (str or UR3Backend): ``"sim"`` (default), ``"rtde"`` (needs ``host``), or an instance.
+        backend (str or UR3Backend): ``"sim"`` (default), ``"sim_realtime"``, ``"rtde"`` (needs ``host``), or
+            an instance.
         host (str, optional): the controller's address for ``"rtde"``.
         speed_limit (float): the action bound (rad/s). Defaults to 0.5.
         acceleration (float): the ``speedj`` acceleration (rad/s^2). Defaults to 1.4.
@@ -145,12 +152,14 @@ class UR3Env(EnvBase):
             self.backend = backend
         elif backend == "sim":
             self.backend = SimBackend(task, limits=limits, period=period)
+        elif backend == "sim_realtime":
+            self.backend = SimRealtimeBackend(task, limits=limits, period=period)
         elif backend == "rtde":
             if not host:
                 raise ValueError("backend='rtde' needs host=<the controller's address>.")
             self.backend = RTDEBackend(host, limits=limits, period=period)
         else:
-            raise ValueError(f"backend must be 'sim', 'rtde' or a UR3Backend, got {backend!r}.")
+            raise ValueError(f"backend must be 'sim', 'sim_realtime', 'rtde' or a UR3Backend, got {backend!r}.")
         self.speed_limit, self.acceleration, self.period = float(speed_limit), float(acceleration), float(period)
         self.home_tolerance, self.home_speed, self.spill_angle = float(home_tolerance), float(home_speed), float(spill_angle)
         sim = isinstance(self.backend, SimBackend)
@@ -158,6 +167,8 @@ class UR3Env(EnvBase):
         self.stick_sensor = stick_sensor
         self.overruns = 0
         self.halts = 0
+        self.period_histogram = np.zeros(PERIOD_BINS + 1, dtype=np.int64)  # 0.5 ms bins; the last: beyond 1 s
+        self._last_command = None
         self.spilled = False
         self._deadline = 0.0
         self._last_warning = -math.inf
@@ -214,6 +225,7 @@ class UR3Env(EnvBase):
         self.spilled = False
         state = self.backend.read_state()
         self._deadline = self.backend.now()
+        self._last_command = None  # a manual reset's time is no control period
         return self._observe(state)
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
@@ -229,6 +241,10 @@ class UR3Env(EnvBase):
         if now > target:
             self._overrun(now - self._deadline)
             target = now + self.period
+        sent = self.backend.now()
+        if self._last_command is not None:
+            self._record_period(sent - self._last_command)
+        self._last_command = sent
         self.backend.speedj(qd, self.acceleration)
         self.backend.wait_until(target)
         self._deadline = target
@@ -257,6 +273,25 @@ class UR3Env(EnvBase):
         """Episodes ended by a halted robot, plus the backend's counters (protective stops, host
         watchdog stops, safety-filter counts)."""
         return {"halts": self.halts, **self.backend.counters()}
+
+    def _record_period(self, seconds: float) -> None:
+        # a period exactly on a bin's edge (40 ms) goes to the bin it starts, whatever the float rounding
+        self.period_histogram[min(int(seconds / PERIOD_BIN + 1e-6), PERIOD_BINS)] += 1
+
+    def control_period_stats(self) -> dict[str, float | int | None]:
+        """The time between successive commands (a manual reset between two is not counted): ``median_ms`` and ``p99_ms`` (the upper edge
+        of their 0.5 ms bin; None before two commands), and how many were measured."""
+        counts = self.period_histogram
+        total = int(counts.sum())
+        if not total:
+            return {"median_ms": None, "p99_ms": None, "measured": 0}
+        cumulative = np.cumsum(counts)
+
+        def quantile(q: float) -> float:
+            index = int(np.searchsorted(cumulative, q * total))
+            return (index + 1) * PERIOD_BIN * 1000 if index < PERIOD_BINS else math.inf
+
+        return {"median_ms": quantile(0.5), "p99_ms": quantile(0.99), "measured": total}
 
     def time_left(self) -> float:
         """Seconds until the next step must be called to keep the control period."""

@@ -8,6 +8,7 @@ from __future__ import annotations
 import abc
 import logging
 import math
+import time
 from dataclasses import dataclass, field
 
 import mujoco
@@ -19,7 +20,7 @@ from .ur3_model import HOME_Q, JOINT_HIGH, JOINT_LOW, VELOCITY_LIMITS, build_ur3
 from .ur3_safety import SafetyFilter, SafetyLimits, filter_command
 
 __all__ = [
-    "RobotState", "UR3Backend", "SimBackend", "SafetyLimits", "RobotFault", "SafetyFilter", "filter_command",
+    "RobotState", "UR3Backend", "SimBackend", "SimRealtimeBackend", "SafetyLimits", "RobotFault", "SafetyFilter", "filter_command",
     "cup_axis_tilt",
 ]
 
@@ -211,6 +212,57 @@ class SimBackend(UR3Backend):
 
 
 # ---------------------------------------------------------------------------------------------- real arm
+class SimRealtimeBackend(SimBackend):
+    """The MuJoCo twin in wall-clock time: the arm runs while the trainer computes, as the real arm does.
+
+    ``now()`` is a monotonic clock (seconds since ``connect``), so :class:`~torchrl_reset_envs.UR3Env` paces its
+    steps at the control period on it and counts an overrun whenever the trainer comes back late, exactly as
+    on the real backend (``realtime = True``: the recipe's update budget applies). ``wait_until(t)`` first runs
+    the twin's physics over the wall-clock span since the last call (the arm keeps executing its last command
+    while the trainer is busy, however long that takes), then sleeps until ``t``. A manual reset or a restored
+    simulator state starts the span again from now.
+
+    Args:
+        clock, sleep: the monotonic clock and the sleep (tests pass a fake pair); other arguments as
+            :class:`SimBackend`.
+    """
+
+    realtime = True
+
+    def __init__(self, *args, clock=time.monotonic, sleep=time.sleep, **kwargs) -> None:
+        super().__init__(*args, **kwargs)
+        self._clock, self._sleep = clock, sleep
+        self._origin = None
+        self._simulated_to = 0.0  # the wall-clock time (since connect) the physics has been run to
+
+    def connect(self) -> None:
+        if self._origin is None:
+            self._origin = self._clock()
+        super().connect()
+        self._simulated_to = self.now()
+
+    def now(self) -> float:
+        return self._clock() - self._origin
+
+    def restore_home(self, q_home: np.ndarray) -> None:
+        super().restore_home(q_home)
+        if self._origin is not None:
+            self._simulated_to = self.now()
+
+    def set_simulator_state(self, state: dict) -> None:
+        super().set_simulator_state(state)
+        self._simulated_to = self.now()
+
+    def wait_until(self, t: float) -> None:
+        span = t - self._simulated_to  # the wall-clock time the arm runs, the trainer's busy time included
+        if span > 0:
+            super().wait_until(float(self.data.time) + span)
+            self._simulated_to = t
+        remaining = t - self.now()
+        if remaining > 0:
+            self._sleep(remaining)
+
+
 def cup_axis_tilt(q: np.ndarray) -> float:
     """Angle (rad) between the cup's axis (minus the flange z axis) and the world vertical, from the DH model."""
     z = flange_pose(q)[1][:, 2]

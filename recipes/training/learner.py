@@ -67,7 +67,8 @@ class Learner:
     """
 
     def __init__(self, spec: RunSpec, forward: Agent, reset: Agent, forward_rb, reset_rb, collector: DualCollector,
-                 matmul_precision: str, robot=None, *, last_losses: dict | None = None) -> None:
+                 matmul_precision: str, robot=None, *, last_losses: dict | None = None,
+                 updates: dict | None = None) -> None:
         cfg = spec.cfg
         self.spec, self.cfg, self.forward, self.reset = spec, cfg, forward, reset
         self.forward_rb, self.reset_rb, self.collector = forward_rb, reset_rb, collector
@@ -85,6 +86,8 @@ class Learner:
                        for name, agent in self.agents.items()}
         self.budget = UpdateBudget()
         self.last_losses: dict[str, float] = {} if last_losses is None else last_losses  # the latest of each loss
+        #: the updates each agent made (the run's history keeps them across a resume)
+        self.updates: dict[str, int] = {"forward": 0, "reset": 0} if updates is None else updates
 
     def buffer(self, phase: str):
         return self.forward_rb if phase == "forward" else self.reset_rb
@@ -119,7 +122,18 @@ class Learner:
             yield
         self.budget.record(phase, time.perf_counter() - started)
 
+    def owed_updates(self, phase: str) -> int:
+        """Algorithm 1's count for agent ``phase``: one update per step of its phase past ``heat_up``."""
+        return max(0, int(self.collector.counters[f"{phase}_steps"]) - self.heat_up)
+
+    def updates_achieved(self) -> dict[str, float | None]:
+        """Per agent, the updates it made as a fraction of :meth:`owed_updates` (None while none is owed)."""
+        return {phase: (self.updates[phase] / owed if (owed := self.owed_updates(phase)) else None)
+                for phase in ("forward", "reset")}
+
     def record_losses(self, phase: str, losses: dict[str, float]) -> None:
+        """After an update of agent ``phase``: its losses, and one more update counted."""
+        self.updates[phase] += 1
         agent = self.agents[phase]
         self.last_losses.update({f"loss_{phase}_actor": losses["loss_actor"],
                                  f"loss_{phase}_critic": losses[agent.critic_loss]})

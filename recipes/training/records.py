@@ -25,7 +25,7 @@ from torchrl_reset_recipes.training.agents import reset_head
 from torchrl_reset_recipes.training.diagnostics import DIAGNOSTIC_FIELDS, RESET_FIELDS, ResetDistances, TriggerScores, probe_classifier
 from torchrl_reset.actor_heads import TanhHead
 from torchrl_reset_recipes.training.run_folder import CsvTable, code_version, processor_name, reset_outcomes_by_quarter
-from torchrl_reset_recipes.training.task_envs import safety_counters
+from torchrl_reset_recipes.training.task_envs import realtime_env, safety_counters
 
 log = logging.getLogger("torchrl_reset.train")
 
@@ -42,6 +42,9 @@ PROGRESS_FIELDS = [
     "forward_saturation", "forward_preact_abs", "reset_saturation", "reset_preact_abs",
     # triggered resets whose stopped state already passed the env's at-initial-state check (so far)
     "triggers_at_initial_state",
+    # on a real-time robot: steps called after the control period ended (so far), and each agent's updates as a
+    # fraction of Algorithm 1's count (one per step of its phase past heat-up)
+    "overruns", "forward_updates_achieved", "reset_updates_achieved",
 ]
 EVAL_FIELDS = ["frames", "forward_return", "forward_steps", "triggered", "reset_success", "reset_steps"]
 TRIGGER_FIELDS = ["frames", "steps", "value", "irrecoverable", "at_initial_state", "observation"]
@@ -128,6 +131,7 @@ class RunRecord:
         # triggers that stopped the forward agent at a state the env's at-initial-state check already passed (a run
         # resumed from a checkpoint written before this count existed counts from its resume)
         self.history.setdefault("triggers_at_initial_state", 0)
+        self.history.setdefault("updates", {"forward": 0, "reset": 0})  # the updates each agent made
         self.bar = tqdm(total=int(self.cfg.total_steps), initial=self.collector.frames,
                         desc=f"{self.cfg.task.name}/{self.cfg.algo.name}", unit="step", mininterval=2.0,
                         disable=not self.cfg.progress_bar, dynamic_ncols=True)
@@ -194,6 +198,9 @@ class RunRecord:
             **self.history["last_losses"], "protective_stops": safety_counters(env).get("protective_stops", 0),
             "irrecoverable_forward": self.irrecoverable["forward"], "irrecoverable_reset": self.irrecoverable["reset"],
             **Saturation.fields(self.window), "triggers_at_initial_state": self.history["triggers_at_initial_state"],
+            "overruns": getattr(realtime_env(env), "overruns", 0),
+            **{f"{phase}_updates_achieved": float("nan") if value is None else value
+               for phase, value in learner.updates_achieved().items()},
         }
         self.last_window = Saturation.fields(self.window)
         self.window = self.history["saturation_window"] = Saturation.empty()
@@ -246,7 +253,11 @@ class RunRecord:
             # env's at-initial-state check (the reset episode after one succeeds once its minimum steps are done)
             "triggers_at_initial_state": history["triggers_at_initial_state"],
             "skipped_updates": learner.budget.skipped,
+            # per agent, the updates made as a fraction of Algorithm 1's count (one per step of its phase past
+            # heat-up); below 1 on a real-time robot where updates did not fit in the control period
+            "updates_achieved": learner.updates_achieved(),
             "overruns": getattr(robot, "overruns", 0),
+            "control_period": robot.control_period_stats() if hasattr(robot, "control_period_stats") else None,
             "protective_stops": safety_counters(env).get("protective_stops", 0),
             "safety": safety_counters(env),
             # entries into an irrecoverable state (over the cliff, into the ditch), in forward and in reset steps

@@ -151,6 +151,6 @@ def build_run(spec: RunSpec, matmul_precision: str) -> TrainingRun:
     state.history = record.history
     robot = realtime_env(env)
     learner = Learner(spec, forward, reset, forward_rb, reset_rb, collector, matmul_precision, robot,
-                      last_losses=record.history["last_losses"])
+                      last_losses=record.history["last_losses"], updates=record.history["updates"])
     return TrainingRun(spec, forward, reset, env, trigger, eval_env, eval_trigger, collector, forward_rb, reset_rb, state,
                record, learner, robot, matmul_precision)
