@@ -124,22 +124,23 @@ def profile(overrides: list[str], steps: int, threads: int) -> dict:
         timers.wrap(run.state, "save", "checkpoints")
         collector, learner = run.collector, run.learner
         started = time.perf_counter()
-        iterator = iter(collector)
+        iterator, streams = iter(collector), run.streams
         while True:
-            with timers.timed("acting"):
+            with timers.timed("acting"), streams.use("actor"):
                 batch = next(iterator, None)
             if batch is None:
                 break
             phase = DualCollector.phase_of(batch)
             agent = learner.agents[phase]
-            with timers.timed("store"):
-                learner.store(batch, phase)
-            for _ in range(batch.numel() if learner.updating(phase) else 0):
-                with timers.timed(f"{phase} sample"):
-                    sample = learner.sample(phase)
-                with timers.timed(f"{phase} update"), learner.timed(phase):
-                    losses = update(agent, sample, learner.losses[phase], release_order=learner.release_order)
-                learner.record_losses(phase, losses)
+            with streams.use("learner"):
+                with timers.timed("store"):
+                    learner.store(batch, phase)
+                for _ in range(batch.numel() if learner.updating(phase) else 0):
+                    with timers.timed(f"{phase} sample"):
+                        sample = learner.sample(phase)
+                    with timers.timed(f"{phase} update"), learner.timed(phase):
+                        losses = update(agent, sample, learner.losses[phase], release_order=learner.release_order)
+                    learner.record_losses(phase, losses)
             run.after_step(batch, phase)
         run.record.close()
         summary = run.finish(False)

@@ -64,17 +64,23 @@ def _train(cfg: DictConfig) -> dict:
     stopped_by = None  # the signal (SIGINT, SIGTERM) that ends the run after its current step
     try:
         with stop_on_signals() as stop_requested:
-            for batch in collector:
+            steps, streams = iter(collector), run.streams
+            while True:
+                with streams.use("actor"):  # learner.streams: separate gives acting and learning a stream each
+                    batch = next(steps, None)
+                if batch is None:
+                    break
                 batch = batch.to(cfg.device)
                 phase = DualCollector.phase_of(batch)
                 agent = learner.agents[phase]  # pi_f and Q, or pi_r and the C_i (LNT: the Q_i)
-                learner.store(batch, phase)  # lines 16 / 23: save the transition in that phase's buffer
-                # ... and update that agent, once per step taken, past its heat-up
-                for _ in range(batch.numel() if learner.updating(phase) else 0):
-                    sample = learner.sample(phase)  # replay rows (ours: + success examples; LNT: + reward)
-                    with learner.timed(phase):
-                        losses = update(agent, sample, learner.losses[phase], release_order=learner.release_order)
-                    learner.record_losses(phase, losses)
+                with streams.use("learner"):
+                    learner.store(batch, phase)  # lines 16 / 23: save the transition in that phase's buffer
+                    # ... and update that agent, once per step taken, past its heat-up
+                    for _ in range(batch.numel() if learner.updating(phase) else 0):
+                        sample = learner.sample(phase)  # replay rows (ours: + success examples; LNT: + reward)
+                        with learner.timed(phase):
+                            losses = update(agent, sample, learner.losses[phase], release_order=learner.release_order)
+                        learner.record_losses(phase, losses)
                 run.after_step(batch, phase)  # its record; the evaluation, log row and checkpoint when due
                 if stop_requested:
                     stopped_by = stop_requested[0]

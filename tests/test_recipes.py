@@ -931,3 +931,51 @@ def test_the_code_version_is_the_scripts_checkout_where_the_package_is_an_instal
     monkeypatch.setattr(run_folder, "__file__", str(copy))
     assert run_folder.code_version(str(RECIPES / "train.py"))["commit"] == head.stdout.strip()
     assert run_folder.code_version(str(tmp_path / "elsewhere" / "train.py")) == {"commit": None, "modified": None}
+
+
+def test_separate_random_streams_resume_exactly_and_part_from_the_shared_stream(tmp_path):
+    """learner.streams=separate (the actor's and the learner's draws apart): a run stopped at 200 steps and resumed
+    equals the run that never stopped, row by row; it parts from the shared stream's run once the learner draws
+    (after heat-up), and not before: the actor's stream starts where the shared one does."""
+    common = ["task=peg_insertion_remove", "algo=ours", "learner.streams=separate"]
+    train.train(config(tmp_path / "whole", *common, "total_steps=400"))
+    train.train(config(tmp_path / "split", *common, "total_steps=200"))
+    train.train(config(tmp_path / "split", *common, "total_steps=400", "resume=true"))
+    drop = {"steps_per_second"}
+    a = [{k: v for k, v in r.items() if k not in drop} for r in rows(tmp_path / "whole" / "progress.csv")]
+    b = [{k: v for k, v in r.items() if k not in drop} for r in rows(tmp_path / "split" / "progress.csv")]
+    assert a == b and len(a) == 8
+    train.train(config(tmp_path / "shared", "task=peg_insertion_remove", "algo=ours", "total_steps=400"))
+    shared = rows(tmp_path / "shared" / "progress.csv")
+    # the first log row (50 steps) comes before either agent's heat-up (40 steps of each): the same episodes
+    counters = ("forward_steps", "reset_steps", "forward_episodes", "manual_resets", "triggered_resets")
+    assert {k: shared[0][k] for k in counters} == {k: a[0][k] for k in counters}
+    assert any(shared[i][k] != a[i][k] for i in range(len(a)) for k in ("loss_reset_critic", "loss_forward_critic"))
+
+
+def test_random_streams_are_independent_and_restore():
+    import torch
+
+    from torchrl_reset_recipes.training.streams import RandomStreams
+
+    streams = RandomStreams("separate", seed=3)
+    with streams.use("actor"):
+        first = torch.rand(3)
+    with streams.use("learner"):
+        learner_draw = torch.rand(4)
+    saved = streams.state_dict()
+    with streams.use("actor"):
+        second = torch.rand(3)
+    torch.manual_seed(3)  # the actor's stream is the shared stream of seed 3, however the learner draws
+    assert torch.equal(torch.cat([first, second]), torch.rand(6))
+    torch.manual_seed(3 + 7_919)
+    assert torch.equal(learner_draw, torch.rand(4))
+    restored = RandomStreams("separate", seed=99)
+    restored.load_state_dict(saved)
+    with restored.use("actor"):
+        assert torch.equal(torch.rand(3), second)  # goes on where the saved actor stream stood
+    shared = RandomStreams("shared", seed=3)
+    with pytest.raises(ValueError, match="resume with learner.streams=separate"):
+        shared.load_state_dict(saved)
+    with pytest.raises(ValueError, match="learner.streams must be one of shared, separate"):
+        RandomStreams("both")

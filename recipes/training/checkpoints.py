@@ -357,8 +357,8 @@ class TrainingState:
     evaluation starts from the start state the run that never stopped would draw)."""
 
     def __init__(self, checkpoints: Checkpoints, cfg, forward, reset, collector, forward_rb, reset_rb,
-                 eval_env=None) -> None:
-        self.checkpoints, self.cfg = checkpoints, cfg
+                 eval_env=None, streams=None) -> None:
+        self.checkpoints, self.cfg, self.streams = checkpoints, cfg, streams
         self.forward, self.reset, self.collector, self.eval_env = forward, reset, collector, eval_env
         self.buffers = {"forward_buffer": forward_rb, "reset_buffer": reset_rb}
         self.history: dict = {}
@@ -379,6 +379,7 @@ class TrainingState:
                 "collector": self.collector.state_dict(),
                 "history": self.history,
                 "rng": {"torch": torch.get_rng_state(), "numpy": np.random.get_state(), "python": random.getstate()},
+                "streams": None if self.streams is None else self.streams.state_dict(),
                 "eval_env": _simulator_state(self.eval_env),
             },
             folder / "state.pt",
@@ -413,6 +414,8 @@ class TrainingState:
         torch.set_rng_state(state["rng"]["torch"])
         np.random.set_state(state["rng"]["numpy"])
         random.setstate(state["rng"]["python"])
+        if self.streams is not None:  # after the global generator: the active stream's state goes back into it
+            self.streams.load_state_dict(state.get("streams"))
         if state.get("eval_env") is not None:  # absent from checkpoints written before it was kept
             _simulator(self.eval_env).set_simulator_state(state["eval_env"])
         self.checkpoints.loaded(folder)

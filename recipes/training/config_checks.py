@@ -13,6 +13,7 @@ from torchrl_reset_recipes import CONF
 from torchrl_reset_recipes.training.absent_keys import setting
 from torchrl_reset.actor_heads import ACTOR_HEADS
 from torchrl_reset_recipes.training.reset_agents import KINDS
+from torchrl_reset_recipes.training.streams import STREAMS
 from torchrl_reset_recipes.training.checkpoints import Checkpoints, identity_differences, no_intact_checkpoint
 from torchrl_reset_envs import TASKS
 
@@ -31,6 +32,7 @@ LAST_BATCHING_COMMIT = "eb8b414"
 
 #: the settings that take one of two words, and those words (a configuration without the key: absent_keys)
 CHOICES = {"exploration.restart": ("never", "episode"), "update_order": ("release", "joint"),
+           "learner.streams": STREAMS,
            "forward.sampling": ("episode", "transition"), "target_init": ("release", "copy")}
 
 

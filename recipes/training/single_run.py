@@ -16,6 +16,7 @@ from torchrl_reset_recipes.training.learner import Learner, make_collector
 from torchrl_reset_recipes.training.records import RunRecord
 from torchrl_reset_recipes.training.run_spec import RunSpec
 from torchrl_reset_recipes.training.checkpoints import Checkpoints, TrainingState
+from torchrl_reset_recipes.training.streams import RandomStreams
 from torchrl_reset_recipes.training.task_envs import EVAL_SEED_OFFSET, evaluate, make_task_env, realtime_env, task_dimensions
 
 from torchrl_reset import DualCollector
@@ -74,6 +75,7 @@ class TrainingRun:
     learner: Learner
     robot: object
     matmul_precision: str
+    streams: RandomStreams  # the actor's and the learner's random streams (learner.streams)
 
     @property
     def cfg(self) -> DictConfig:
@@ -138,8 +140,9 @@ def build_run(spec: RunSpec, matmul_precision: str) -> TrainingRun:
 
     checkpoints = Checkpoints(run_dir / "checkpoints", keep=int(cfg.keep_checkpoints),
                               keep_states_every=spec["keep_states_every"])
+    streams = RandomStreams(spec["learner.streams"], int(cfg.seed))  # after collector.set_seed: the actor's as shared
     state = TrainingState(checkpoints, cfg,
-                          forward, reset, collector, forward_rb, reset_rb, eval_env)
+                          forward, reset, collector, forward_rb, reset_rb, eval_env, streams)
     record = RunRecord(spec, run_dir, collector, trigger)
     if spec.resume:
         folder = state.load()
@@ -153,4 +156,4 @@ def build_run(spec: RunSpec, matmul_precision: str) -> TrainingRun:
     learner = Learner(spec, forward, reset, forward_rb, reset_rb, collector, matmul_precision, robot,
                       last_losses=record.history["last_losses"], updates=record.history["updates"])
     return TrainingRun(spec, forward, reset, env, trigger, eval_env, eval_trigger, collector, forward_rb, reset_rb, state,
-               record, learner, robot, matmul_precision)
+               record, learner, robot, matmul_precision, streams)
