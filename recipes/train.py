@@ -32,6 +32,7 @@ from omegaconf import DictConfig
 
 from torchrl_reset import DualCollector
 from torchrl_reset_envs.ur3_backends import RobotFault
+from torchrl_reset_recipes.training.async_learner import AsyncLearner, LearnerFailed
 from torchrl_reset_recipes.training.checkpoints import CheckpointDamaged, Checkpoints
 from torchrl_reset_recipes.training.config_checks import RETIRED_KEYS, ConfigError, retired_key_problem, validate
 from torchrl_reset_recipes.training.learner import NonFiniteLoss
@@ -58,6 +59,21 @@ def _train(cfg: DictConfig) -> dict:
         log.info("%s finished at step %d; its files are left as they are", cfg.run_dir, done["steps"])
         return done
     run = build_run(spec, set_up_process(spec))
+    remote = start_async_learner(run) if spec["learner.mode"] == "async" else None  # the learner's own process
+    try:
+        return _loop(cfg, run, remote)
+    except LearnerFailed as err:  # the learner process crashed or hung: the arm stops, the last checkpoint stands
+        if run.robot is not None:
+            run.robot.backend.stop()
+        raise LearnerStopped(f"{err}\nThe arm is stopped; the last checkpoint stands, and resume=auto continues from "
+                             "it.") from err
+    finally:
+        if remote is not None:
+            remote.close()
+
+
+def _loop(cfg: DictConfig, run, remote) -> dict:
+    """Algorithm 1's loop over the run's collector (the learner's part here, or in its process with ``remote``)."""
     collector, learner = run.collector, run.learner
 
     # Algorithm 1, lines 5-28: each batch is one action of a forward or a reset episode
@@ -72,20 +88,29 @@ def _train(cfg: DictConfig) -> dict:
                     break
                 batch = batch.to(cfg.device)
                 phase = DualCollector.phase_of(batch)
-                agent = learner.agents[phase]  # pi_f and Q, or pi_r and the C_i (LNT: the Q_i)
-                with streams.use("learner"):
-                    learner.store(batch, phase)  # lines 16 / 23: save the transition in that phase's buffer
-                    # ... and update that agent, once per step taken, past its heat-up
-                    for _ in range(batch.numel() if learner.updating(phase) else 0):
-                        sample = learner.sample(phase)  # replay rows (ours: + success examples; LNT: + reward)
-                        with learner.timed(phase):
-                            losses = update(agent, sample, learner.losses[phase], release_order=learner.release_order)
-                        learner.record_losses(phase, losses)
-                run.after_step(batch, phase)  # its record; the evaluation, log row and checkpoint when due
+                if remote is not None:  # learner.mode=async: the learner stores it and updates in its process
+                    remote.send(batch, phase)
+                    remote.after_step(episode_ended=bool(batch.get(("next", "done")).any()))
+                else:
+                    agent = learner.agents[phase]  # pi_f and Q, or pi_r and the C_i (LNT: the Q_i)
+                    with streams.use("learner"):
+                        learner.store(batch, phase)  # lines 16 / 23: save the transition in that phase's buffer
+                        # ... and update that agent, once per step taken, past its heat-up
+                        for _ in range(batch.numel() if learner.updating(phase) else 0):
+                            sample = learner.sample(phase)  # replay rows (ours: + success examples; LNT: + reward)
+                            with learner.timed(phase):
+                                losses = update(agent, sample, learner.losses[phase],
+                                                release_order=learner.release_order)
+                            learner.record_losses(phase, losses)
+                with streams.use("actor"):
+                    run.after_step(batch, phase)  # its record; the evaluation, log row and checkpoint when due
                 if stop_requested:
                     stopped_by = stop_requested[0]
                     log.warning("%s at step %d: checkpointing", signal.Signals(stopped_by).name, collector.frames)
                     break
+            if remote is not None:  # the acting is over: the learner works off the updates it still owes
+                remote.achieved_at_end = remote.updates_achieved()
+                remote.drain()
     except KeyboardInterrupt:  # a second Ctrl-C: the step under way was cut short, its state is not saved
         raise RunInterrupted(signal.SIGINT, [], f"stopped at once at step {collector.frames}, without a checkpoint "
                                                 "there; the last checkpoint stands") from None
@@ -105,6 +130,21 @@ def _train(cfg: DictConfig) -> dict:
         raise RunInterrupted(stopped_by, [summary], f"{signal.Signals(stopped_by).name} stopped the run at step "
                                                     f"{collector.frames}, checkpointed there")
     return summary
+
+
+class LearnerStopped(RuntimeError):
+    """``learner.mode=async``: the learner process failed; the arm was stopped."""
+
+
+def start_async_learner(run) -> AsyncLearner:
+    """``learner.mode=async``: starts the learner process (from the checkpoint the run resumed from), writes its
+    part into every checkpoint, and stands in for the run's learner in the records."""
+    resumed = run.state.loaded_from if run.spec.resume else None
+    remote = AsyncLearner(run.spec, run.forward, run.reset, run.collector, None if resumed is None else str(resumed),
+                          updates=run.record.history["updates"], last_losses=run.record.history["last_losses"])
+    run.state.extra_writers.append(remote.checkpoint)
+    run.learner = remote
+    return remote
 
 
 def finished_summary(spec: RunSpec) -> dict | None:
@@ -153,7 +193,8 @@ def main() -> None:
 def run_command(cfg: DictConfig) -> None:
     """Runs the configuration's run and prints its summary. Exit status: 0 for a finished run; 2 for a
     configuration refused before anything was written; 3 for a diverged run, 4 for a robot fault (both
-    checkpointed); 128 + the signal's number for a run a signal stopped (130 for Ctrl-C, 143 for SIGTERM),
+    checkpointed); 5 for a failed learner process (``learner.mode=async``; the last checkpoint stands); 128 + the
+    signal's number for a run a signal stopped (130 for Ctrl-C, 143 for SIGTERM),
     which then prints the command that continues it."""
     try:
         validate(cfg)  # refused before the run folder exists (train checks again under the folder's lock)
@@ -167,9 +208,10 @@ def run_command(cfg: DictConfig) -> None:
         print(f"interrupted before the run could stop cleanly; its last checkpoint stands. To continue:\n  "
               f"{continue_command(cfg)}", file=sys.stderr)
         sys.exit(128 + signal.SIGINT)
-    except (ConfigError, CheckpointDamaged, RunFolderBusy, TrainingDiverged, RobotStopped) as err:
+    except (ConfigError, CheckpointDamaged, RunFolderBusy, TrainingDiverged, RobotStopped, LearnerStopped) as err:
         print(f"error: {err}", file=sys.stderr)
-        sys.exit({ConfigError: 2, CheckpointDamaged: 2, RunFolderBusy: 2, TrainingDiverged: 3}.get(type(err), 4))
+        sys.exit({ConfigError: 2, CheckpointDamaged: 2, RunFolderBusy: 2, TrainingDiverged: 3,
+                  LearnerStopped: 5}.get(type(err), 4))
     _print_results(cfg, [summary])
 
 

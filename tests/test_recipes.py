@@ -323,13 +323,22 @@ def test_lnt_reset_loss_gives_each_member_its_own_td_target(tmp_path):
 
 
 def test_update_budget_skips_updates_that_would_not_fit_in_the_control_period():
-    budget = UpdateBudget(margin=0.002)
+    budget = UpdateBudget(margin=0.002, warmup=2, window=5, skip_decay=0.5)
     assert budget.fits("reset", 0.04)  # nothing measured yet
-    budget.record("reset", 0.030)
-    assert not budget.fits("reset", 0.031)  # 31 ms left - 2 ms margin < 30 ms
-    assert budget.fits("reset", 0.033) and budget.fits("forward", 0.003)
-    budget.record("reset", 0.010)  # the estimate decays: max(10 ms, 0.9 * 30 ms) = 27 ms
-    assert budget.estimate["reset"] == pytest.approx(0.027)
+    budget.record("reset", 0.200)  # the first two updates (one-time costs) are no estimate
+    budget.record("reset", 0.100)
+    assert budget.fits("reset", 0.010)
+    for seconds in (0.030, 0.031, 0.029):
+        budget.record("reset", seconds)
+    assert budget.estimate["reset"] == pytest.approx(0.030)  # the median of 30, 31, 29 ms
+    assert not budget.fits("reset", 0.031)  # 31 ms left - 2 ms margin < 30 ms: skipped, the estimate halves
+    assert budget.estimate["reset"] == pytest.approx(0.015)
+    assert budget.fits("reset", 0.018) and budget.fits("forward", 0.003)  # tried again
+    budget.record("reset", 0.200)  # one slow update (a collection of freed memory) among 29, 30, 31, 200 ms
+    assert budget.estimate["reset"] == pytest.approx(0.031)  # the median: not the outlier
+    for seconds in (0.005,) * 5:  # updates that became quick: the window forgets the old ones
+        budget.record("reset", seconds)
+    assert budget.estimate["reset"] == pytest.approx(0.005)
     assert budget.skipped == 1
 
 

@@ -30,6 +30,9 @@ ABSENT_KEYS = {
     "reset.actor.entropy": 0.0001,         # (read by the tanh_normal head only: RCE's fixed coefficient)
     "reset.learn_from_forward": False,     # the reset agent's buffer: reset transitions only (the paper's B_r)
     "learner.streams": "shared",           # one random stream for acting and learning
+    "learner.mode": "sync",                # one process acts and learns
+    "learner.max_lag": 0,
+    "learner.timeout": 60,
 }
 
 

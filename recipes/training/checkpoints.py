@@ -362,6 +362,10 @@ class TrainingState:
         self.forward, self.reset, self.collector, self.eval_env = forward, reset, collector, eval_env
         self.buffers = {"forward_buffer": forward_rb, "reset_buffer": reset_rb}
         self.history: dict = {}
+        #: writers of further parts of every checkpoint (``learner.mode=async``: the learner process's), each
+        #: called with the folder being written
+        self.extra_writers: list = []
+        self.loaded_from: Path | None = None  # the checkpoint the run resumed from
 
     def save(self) -> Path:
         """A complete checkpoint at the collector's step (crash-safe: see :class:`Checkpoints`)."""
@@ -372,8 +376,8 @@ class TrainingState:
     def _write(self, folder: Path) -> None:
         torch.save(
             {
-                "forward_loss": _own(self.forward.loss.state_dict()),
-                "reset_loss": _own(self.reset.loss.state_dict()),
+                "forward_loss": owned_state(self.forward.loss.state_dict()),
+                "reset_loss": owned_state(self.reset.loss.state_dict()),
                 "forward_optimizer": self.forward.optimizer.state_dict(),
                 "reset_optimizer": self.reset.optimizer.state_dict(),
                 "collector": self.collector.state_dict(),
@@ -387,6 +391,8 @@ class TrainingState:
         for name, rb in self.buffers.items():
             if len(rb):  # torchrl cannot dump a buffer that never received data
                 dump_buffer(rb, folder / name)
+        for write in self.extra_writers:
+            write(folder)
 
     def load(self) -> Path:
         """Loads the newest intact checkpoint into the agents, collector and buffers; sets ``history``. Each
@@ -419,6 +425,7 @@ class TrainingState:
         if state.get("eval_env") is not None:  # absent from checkpoints written before it was kept
             _simulator(self.eval_env).set_simulator_state(state["eval_env"])
         self.checkpoints.loaded(folder)
+        self.loaded_from = folder
         return folder
 
 
@@ -447,7 +454,7 @@ def no_intact_checkpoint(root: Path, damaged: list[tuple[Path, list[str]]]) -> s
 
 
 
-def _own(state: dict) -> dict:
+def owned_state(state: dict) -> dict:
     """The state dict's tensors in storage of their own: torch.save writes a view's whole storage (a tensor
     that views part of a larger one would carry all of it)."""
     return {k: v.clone() if isinstance(v, torch.Tensor) else v for k, v in state.items()}

@@ -32,7 +32,7 @@ LAST_BATCHING_COMMIT = "eb8b414"
 
 #: the settings that take one of two words, and those words (a configuration without the key: absent_keys)
 CHOICES = {"exploration.restart": ("never", "episode"), "update_order": ("release", "joint"),
-           "learner.streams": STREAMS,
+           "learner.streams": STREAMS, "learner.mode": ("sync", "async"),
            "forward.sampling": ("episode", "transition"), "target_init": ("release", "copy")}
 
 
@@ -54,6 +54,23 @@ def should_resume(cfg: DictConfig) -> bool:
     if cfg.resume == "auto":
         return bool(Checkpoints(Path(cfg.run_dir) / "checkpoints").folders())
     return bool(cfg.resume)
+
+
+def learner_problems(cfg: DictConfig) -> list[str]:
+    """Problems with ``learner.*``: async's streams, the lag bound and the timeout."""
+    problems = []
+    lag, timeout = setting(cfg, "learner.max_lag"), setting(cfg, "learner.timeout")
+    if isinstance(lag, bool) or not isinstance(lag, int) or lag < 0:
+        problems.append(f"learner.max_lag must be a whole number of steps >= 0, got {lag!r}")
+    if isinstance(timeout, bool) or not isinstance(timeout, (int, float)) or timeout <= 0:
+        problems.append(f"learner.timeout must be a number of seconds > 0, got {timeout!r}")
+    if setting(cfg, "learner.mode") == "async":
+        if setting(cfg, "learner.streams") != "separate":
+            problems.append("learner.mode=async draws the actor's and the learner's randomness in two processes: "
+                            "set learner.streams=separate")
+        if str(cfg.device) != "cpu":
+            problems.append(f"learner.mode=async runs on the CPU (device={cfg.device})")
+    return problems
 
 
 def actor_problems(cfg: DictConfig) -> list[str]:
@@ -130,6 +147,7 @@ def validate(cfg: DictConfig) -> None:
         if not isinstance(setting(cfg, key), bool):
             problems.append(f"{key} must be true or false, got {OmegaConf.select(cfg, key)!r}")
     problems += actor_problems(cfg)
+    problems += learner_problems(cfg)
     if int(cfg.heat_up) < 0:
         problems.append(f"heat_up must be >= 0, got {cfg.heat_up}")
     if problems:

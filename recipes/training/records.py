@@ -205,14 +205,12 @@ class RunRecord:
         self.last_window = Saturation.fields(self.window)
         self.window = self.history["saturation_window"] = Saturation.empty()
         self.progress.append(row)
-        reset_rb = learner.reset_rb
-        count = fallback_count(reset_rb)
-        with torch.random.fork_rng(devices=[]):  # the probe's samples leave training's random stream as it was
-            probe = probe_classifier(self.spec.kind, learner.reset.model, learner.reset.actor,
-                                     self.collector.example_buffer, learner.forward_rb, reset_rb, self.trigger.threshold)
-        restore_fallback_count(reset_rb, count)  # the probe's own sample does not count
-        fallbacks = "" if count is None else count
-        self.diagnostics.append({"frames": frames, **self.trigger_scores.row(), **probe, "sampler_fallbacks": fallbacks})
+        scores = {"frames": frames, **self.trigger_scores.row()}
+        if hasattr(learner, "request_probe"):  # learner.mode=async: the buffers are the learner process's
+            learner.request_probe(lambda probe: self.diagnostics.append({**scores, **probe}))
+        else:
+            self.diagnostics.append({**scores, **diagnostic_probe(self.spec, learner, self.collector.example_buffer,
+                                                                  self.trigger.threshold, frames)})
         for logger in self.loggers:
             logger.log_metrics({k: v for k, v in row.items() if k != "frames" and not _isnan(v)}, step=frames)
         self.bar.set_postfix(sps=f"{row['steps_per_second']:.0f}", manual=row["manual_resets"],
@@ -256,6 +254,8 @@ class RunRecord:
             # per agent, the updates made as a fraction of Algorithm 1's count (one per step of its phase past
             # heat-up); below 1 on a real-time robot where updates did not fit in the control period
             "updates_achieved": learner.updates_achieved(),
+            # learner.mode and, for async, the lag, the weights' age, the queue's depth and the waits
+            "learner": learner.stats_summary() if hasattr(learner, "stats_summary") else {"mode": "sync"},
             "overruns": getattr(robot, "overruns", 0),
             "control_period": robot.control_period_stats() if hasattr(robot, "control_period_stats") else None,
             "protective_stops": safety_counters(env).get("protective_stops", 0),
@@ -310,6 +310,22 @@ def _quarter_rates(quarters: dict) -> dict:
         return q["successful_resets"] / q["reset_episodes"] if q["reset_episodes"] else None
 
     return {f"reset_success_rate_{name}_quarter": rate(quarters[name]) for name in ("first", "last")}
+
+
+def diagnostic_probe(spec, learner, examples, threshold: float, frames: int) -> dict:
+    """The reset model on examples, reset replay and forward replay (``diagnostics.csv``'s probe columns) and the
+    reset sampler's fallback count, from the learner's buffers; its samples leave the training streams as they were.
+    With ``learner.streams=separate`` its samples come from a generator of its own, seeded by the run's seed and
+    the step (the same in one process and in two); with the shared stream, from a copy of it (every committed run)."""
+    reset_rb = learner.reset_rb
+    count = fallback_count(reset_rb)
+    with torch.random.fork_rng(devices=[]):
+        if spec["learner.streams"] == "separate":
+            torch.manual_seed(int(spec.cfg.seed) * 1_000_003 + int(frames))
+        probe = probe_classifier(spec.kind, learner.reset.model, learner.reset.actor, examples, learner.forward_rb,
+                                 reset_rb, threshold)
+    restore_fallback_count(reset_rb, count)  # the probe's own sample does not count
+    return {**probe, "sampler_fallbacks": "" if count is None else count}
 
 
 def _isnan(value) -> bool:
