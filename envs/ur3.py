@@ -169,6 +169,7 @@ class UR3Env(EnvBase):
         self.halts = 0
         self.period_histogram = np.zeros(PERIOD_BINS + 1, dtype=np.int64)  # 0.5 ms bins; the last: beyond 1 s
         self._last_command = None
+        self._held = False
         self.spilled = False
         self._deadline = 0.0
         self._last_warning = -math.inf
@@ -238,7 +239,9 @@ class UR3Env(EnvBase):
         qd = np.clip(qd, -self.speed_limit, self.speed_limit)
         target = self._deadline + self.period
         now = self.backend.now()
-        if now > target:
+        if self._held:  # after a deliberate hold the period starts afresh: no overrun, no period measured
+            self._held, self._last_command, target = False, None, now + self.period
+        elif now > target:
             self._overrun(now - self._deadline)
             target = now + self.period
         sent = self.backend.now()
@@ -273,6 +276,12 @@ class UR3Env(EnvBase):
         """Episodes ended by a halted robot, plus the backend's counters (protective stops, host
         watchdog stops, safety-filter counts)."""
         return {"halts": self.halts, **self.backend.counters()}
+
+    def hold(self) -> None:
+        """Stops the arm for a deliberate pause between steps (the trainer waiting at an episode boundary for its
+        learner): the next step starts a fresh period, not an overrun."""
+        self.backend.stop()
+        self._held = True
 
     def _record_period(self, seconds: float) -> None:
         # a period exactly on a bin's edge (40 ms) goes to the bin it starts, whatever the float rounding

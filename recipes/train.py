@@ -90,7 +90,8 @@ def _loop(cfg: DictConfig, run, remote) -> dict:
                 phase = DualCollector.phase_of(batch)
                 if remote is not None:  # learner.mode=async: the learner stores it and updates in its process
                     remote.send(batch, phase)
-                    remote.after_step(episode_ended=bool(batch.get(("next", "done")).any()))
+                    remote.after_step(episode_ended=bool(batch.get(("next", "done")).any()),
+                                      halted=bool(batch.get(("next", "terminated")).any()))
                 else:
                     agent = learner.agents[phase]  # pi_f and Q, or pi_r and the C_i (LNT: the Q_i)
                     with streams.use("learner"):
@@ -141,7 +142,8 @@ def start_async_learner(run) -> AsyncLearner:
     part into every checkpoint, and stands in for the run's learner in the records."""
     resumed = run.state.loaded_from if run.spec.resume else None
     remote = AsyncLearner(run.spec, run.forward, run.reset, run.collector, None if resumed is None else str(resumed),
-                          updates=run.record.history["updates"], last_losses=run.record.history["last_losses"])
+                          updates=run.record.history["updates"], last_losses=run.record.history["last_losses"],
+                          robot=run.robot)
     run.state.extra_writers.append(remote.checkpoint)
     run.learner = remote
     return remote

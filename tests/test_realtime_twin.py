@@ -82,6 +82,21 @@ def test_a_manual_reset_is_no_control_period_and_the_arm_starts_still():
     assert np.allclose(env.backend.read_state().qd, 0.0, atol=1e-4)  # at rest (servo jitter), not moving at 0.2
 
 
+def test_a_hold_stops_the_arm_and_the_next_step_starts_a_fresh_period():
+    """The trainer waiting at an episode boundary for its learner (learner.mode=async) holds the arm: 300 ms later
+    the next step is no overrun and no 340 ms period, and the arm was stopped (its command zero)."""
+    clock = FakeClock()
+    env = twin(clock)
+    td = env.reset()
+    td = env.step(td.set("action", torch.full((6,), 0.3)))["next"].select("observation")
+    env.hold()
+    assert np.allclose(env.backend._cmd, 0.0)  # the speedj command the arm follows is zero
+    clock.advance(0.300)
+    env.step(td.set("action", torch.zeros(6)))
+    assert env.overruns == 0 and env.control_period_stats()["measured"] == 0
+    assert env.time_left() == pytest.approx(PERIOD)
+
+
 def test_the_period_histogram_quantiles_by_hand():
     env = UR3Env("reacher")  # the histogram does not depend on the backend
     for seconds in [0.0402] * 98 + [0.1002] * 2:

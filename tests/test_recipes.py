@@ -988,3 +988,30 @@ def test_random_streams_are_independent_and_restore():
         shared.load_state_dict(saved)
     with pytest.raises(ValueError, match="learner.streams must be one of shared, separate"):
         RandomStreams("both")
+
+
+def test_ctrl_c_stops_an_async_run_and_both_processes_checkpoint_and_the_lockstep_run_resumes_exactly(tmp_path):
+    """learner.mode=async, lockstep: Ctrl-C reaches both processes; the learner ignores it, the actor checkpoints
+    after its step with the learner's part (learner.pt) and exits 130; the printed command resumes the run, which
+    then equals the uninterrupted one, table for table."""
+    import shlex
+
+    common = ["task=cliff_cheetah", "algo=ours", "total_steps=200", "learner.streams=separate", "learner.mode=async",
+              "learner.max_lag=0"]
+    train.train(config(tmp_path / "whole", *common))
+    run_dir = tmp_path / "run"
+    args = [sys.executable, str(RECIPES / "train.py"), *TINY, *common, f"run_dir={run_dir}"]
+    progress = run_dir / "progress.csv"
+    returncode, err = _signal_when(args, lambda: progress.exists() and len(rows(progress)) >= 2,
+                                   signal.SIGINT, poll=0.05)
+    assert returncode == 130, err[-2000:]
+    stopped = json.loads((run_dir / "summary.json").read_text())["steps"]
+    latest = run_dir / "checkpoints" / (run_dir / "checkpoints" / "latest").read_text()
+    assert json.loads((latest / "meta.json").read_text())["frames"] == stopped and (latest / "learner.pt").exists()
+    resumed = subprocess.run(shlex.split(err.strip().splitlines()[-1].strip()), capture_output=True, text=True,
+                             timeout=600, env={**os.environ, "RL_WARNINGS": "0"})
+    assert resumed.returncode == 0, resumed.stderr[-2000:]
+    for table in ("progress.csv", "eval.csv", "resets.csv"):
+        whole = [{k: v for k, v in r.items() if k != "steps_per_second"} for r in rows(tmp_path / "whole" / table)]
+        split = [{k: v for k, v in r.items() if k != "steps_per_second"} for r in rows(run_dir / table)]
+        assert whole == split, table

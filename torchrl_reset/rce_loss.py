@@ -186,6 +186,20 @@ class RCELoss(StochasticActorMixin, LossModule):
         >>> (out["loss_actor"] + out["loss_classifier"]).backward()
         >>> updater.step()
 
+        The project's reset actor, stochastic (RCE's tanh-Gaussian) with a learned temperature, SACLoss-style:
+
+        >>> from torchrl.data import Bounded
+        >>> from torchrl_reset.actor_heads import TanhNormalHead
+        >>> head = TanhNormalHead()
+        >>> stochastic = head.make_actor(obs_dim, Bounded(-1.0, 1.0, shape=(act_dim,)), (16, 16))
+        >>> loss = RCELoss(stochastic, ensemble, n_steps=4, **head.loss_kwargs())
+        >>> out = loss(batch)
+        >>> sorted(k for k in out.keys() if k.startswith("loss")), round(float(out["alpha"]), 4)
+        (['loss_actor', 'loss_alpha', 'loss_classifier'], 0.01)
+        >>> (out["loss_classifier"] + out["loss_actor"] + out["loss_alpha"]).backward()
+        >>> loss.temperature.log_alpha.grad is not None
+        True
+
         Any classifier keeping the contract works, for instance one built from stock parts: K torchrl
         ``MLP`` members stacked with ``TensorDict.from_modules`` and run with ``torch.vmap``, each plus
         beta times a frozen prior (buffers, through ``TensorDictParams(..., no_convert=True)``):

@@ -247,9 +247,9 @@ class AsyncLearner:
     ``last_losses``, ``budget``, :meth:`updates_achieved`)."""
 
     def __init__(self, spec, forward, reset, collector: DualCollector, resume_from: str | None, *,
-                 updates: dict, last_losses: dict) -> None:
+                 updates: dict, last_losses: dict, robot=None) -> None:
         cfg = spec.cfg
-        self.spec, self.collector = spec, collector
+        self.spec, self.collector, self.robot = spec, collector, robot
         self.max_lag = int(spec["learner.max_lag"])
         self.timeout = float(spec["learner.timeout"])
         self.heat_up = int(cfg.heat_up)
@@ -299,14 +299,21 @@ class AsyncLearner:
         self.inbox.put(("step", batch.detach().cpu(), phase, examples))
         self.sent += 1
 
-    def after_step(self, episode_ended: bool) -> None:
+    def after_step(self, episode_ended: bool, halted: bool = False) -> None:
         """Between steps: the newest weights; with ``max_lag: 0`` after the learner processed this very step; else
-        at an episode's end once the lag is within ``max_lag``."""
+        at an episode's end once the lag is within ``max_lag``. After a step the robot halted in (a protective stop)
+        the actor handles the stop alone: no wait and no weights until the arm is home again (the next step)."""
         self._drain_outbox()
+        if halted and self.max_lag > 0:
+            self._check_alive()
+            self.stats.add(self.sent - self.processed, self.sent - self.loaded, self._depth())
+            return
         if self.max_lag == 0:
             self._wait_until(self.sent, "lockstep")
         elif episode_ended and self.sent - self.processed > self.max_lag:
             started = time.monotonic()
+            if self.robot is not None:  # the arm held still while the actor waits: no overrun
+                self.robot.hold()
             self._wait_until(self.sent - self.max_lag, "the lag to come back within learner.max_lag")
             self.stats.waits += 1
             self.stats.wait_seconds += time.monotonic() - started

@@ -40,6 +40,8 @@ def update(agent: Agent, sample, loss_module, *, release_order: bool) -> dict[st
     else:
         out = loss_module(sample)
         losses = {"loss_actor": out["loss_actor"], agent.critic_loss: out[agent.critic_loss]}
+        if stochastic:  # the temperature's loss steps with the actor's
+            losses["loss_actor"] = losses["loss_actor"] + out["loss_alpha"]
         penalty = agent.head.penalty(agent.actor, sample)
         if penalty is not None:
             losses["loss_actor"] = losses["loss_actor"] + penalty
