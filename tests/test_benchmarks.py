@@ -107,3 +107,39 @@ def test_a_cuda_run_without_cuda_stops_with_a_clear_message(script, tmp_path):
 def test_bad_update_benchmark_arguments_stop_with_a_clear_message(argv, message, tmp_path):
     with pytest.raises(SystemExit, match=message):
         bench_updates.main([*argv, "--out", str(tmp_path)])
+
+
+def test_the_profile_table_splits_a_runs_time_by_hand():
+    """profile_run.table on made-up totals: 100 steps in 10 s; acting 2 s of which env 0.5, trigger 0.2, policies
+    0.3 (the collector's own 1.0 s is the rest); reset update 6 s, forward update 1 s, one checkpoint 0.5 s; the loop's
+    own time is what is left: 10 - 2 - (6 + 1 + 0.5) = 0.5 s. Outside the updates: 1 - 7 / 10 = 30%. Over 1,000 steps
+    the per-step parts grow 10x and the checkpoints come at every 500 steps plus the last (3 x 0.5 s)."""
+    from benchmarks import profile_run
+
+    result = {"steps": 100, "wall": 10.0, "eval_every": 1000, "checkpoint_every": 500,
+              "total": {"acting": 2.0, "acting: env": 0.5, "acting: trigger": 0.2, "acting: policies": 0.3,
+                        "reset update": 6.0, "forward update": 1.0, "checkpoints": 0.5},
+              "calls": {"checkpoints": 1, "reset update": 60, "forward update": 40}}
+    text, derived = profile_run.table(result, projected_steps=1000)
+    assert derived["parts"]["acting: collector"] == pytest.approx(1.0)
+    assert derived["parts"]["loop"] == pytest.approx(0.5)
+    assert derived["outside_updates"] == pytest.approx(0.30)
+    assert derived["projected"]["reset update"] == pytest.approx(60.0)
+    assert derived["projected"]["checkpoints"] == pytest.approx(1.5)
+    # projected: 95 s of per-step parts (10x of 9.5 s) + 1.5 s of checkpoints; the updates 70 s of it
+    assert derived["outside_updates_projected"] == pytest.approx(1 - 70.0 / 96.5)
+    assert "| reset update | 6.0 | 60.0% | 60.00 | 60 |" in text
+
+
+def test_the_profile_command_runs_the_recipe_and_accounts_for_every_step(tmp_path, capsys):
+    from benchmarks import profile_run
+
+    report = profile_run.main(["--task", "ball_in_cup_catch", "--steps", "120", "--out", str(tmp_path), "--",
+                               "preset=quick", "hidden_sizes=[16,16]", "heat_up=20", "reset.batch_size=16",
+                               "forward.batch_size=16", "checkpoint_every=60"])
+    counters = report["counters"]
+    assert counters["forward_steps"] + counters["reset_steps"] == 120
+    assert report["calls"]["acting: env"] >= 120 and report["calls"]["checkpoints"] == 3  # 60, 120 and the last
+    updates = report["calls"].get("reset update", 0) + report["calls"].get("forward update", 0)
+    assert updates == max(0, counters["forward_steps"] - 20) + max(0, counters["reset_steps"] - 20)
+    assert list(tmp_path.glob("profile-ball_in_cup_catch-*.md"))
