@@ -348,9 +348,9 @@ class AsyncLearner:
             self.inbox.put(("stop",))
             try:
                 self._next_message(self.timeout, waiting_for="the learner to stop")
-            except LearnerFailed:
+            except LearnerFailed:  # hung or gone: it is ended below
                 pass
-            self.process.join(timeout=10)
+            self.process.join(timeout=2)
         if self.process.is_alive():
             self.process.terminate()
             self.process.join(timeout=5)
