@@ -39,7 +39,7 @@ from torchrl_reset_recipes.training.learner import NonFiniteLoss
 from torchrl_reset_recipes.training.run_folder import RunFolderBusy, RunInterrupted, run_folder_lock, stop_on_signals
 from torchrl_reset_recipes.training.run_spec import RunSpec, run_spec
 from torchrl_reset_recipes.training.single_run import RobotStopped, TrainingDiverged, build_run, set_up_process
-from torchrl_reset_recipes.training.updates import update
+from torchrl_reset_recipes.training.updates import learn_step
 
 log = logging.getLogger("torchrl_reset.train")
 
@@ -93,16 +93,8 @@ def _loop(cfg: DictConfig, run, remote) -> dict:
                     remote.after_step(episode_ended=bool(batch.get(("next", "done")).any()),
                                       halted=bool(batch.get(("next", "terminated")).any()))
                 else:
-                    agent = learner.agents[phase]  # pi_f and Q, or pi_r and the C_i (LNT: the Q_i)
                     with streams.use("learner"):
-                        learner.store(batch, phase)  # lines 16 / 23: save the transition in that phase's buffer
-                        # ... and update that agent, once per step taken, past its heat-up
-                        for _ in range(batch.numel() if learner.updating(phase) else 0):
-                            sample = learner.sample(phase)  # replay rows (ours: + success examples; LNT: + reward)
-                            with learner.timed(phase):
-                                losses = update(agent, sample, learner.losses[phase],
-                                                release_order=learner.release_order)
-                            learner.record_losses(phase, losses)
+                        learn_step(learner, batch, phase)  # store the step, then that agent's updates
                 with streams.use("actor"):
                     run.after_step(batch, phase)  # its record; the evaluation, log row and checkpoint when due
                 if stop_requested:

@@ -40,6 +40,7 @@ import torch.multiprocessing as mp
 from omegaconf import DictConfig, OmegaConf
 
 from torchrl_reset import DualCollector, InitialStateBuffer
+from torchrl_reset_recipes.training.learner import updates_achieved
 
 __all__ = ["LearnerFailed", "SharedWeights", "AsyncLearner", "learner_main", "LEARNER_FILE"]
 
@@ -129,7 +130,7 @@ def _serve(cfg: DictConfig, weights, inbox, outbox, resume_from, example_keys, e
     from torchrl_reset_recipes.training.single_run import set_up_process
     from torchrl_reset_recipes.training.streams import RandomStreams
     from torchrl_reset_recipes.training.task_envs import task_dimensions
-    from torchrl_reset_recipes.training.updates import update
+    from torchrl_reset_recipes.training.updates import learn_step
     from torchrl_reset_recipes.training.records import diagnostic_probe
     from torchrl_reset_recipes.training.checkpoints import dump_buffer, owned_state
 
@@ -173,13 +174,7 @@ def _serve(cfg: DictConfig, weights, inbox, outbox, resume_from, example_keys, e
                 for state in new_examples:
                     examples.add(state)
                 collector.counters[f"{phase}_steps"] += batch.numel()
-                learner.store(batch, phase)
-                for _ in range(batch.numel() if learner.updating(phase) else 0):
-                    sample = learner.sample(phase)
-                    with learner.timed(phase):
-                        losses = update(learner.agents[phase], sample, learner.losses[phase],
-                                        release_order=learner.release_order)
-                    learner.record_losses(phase, losses)
+                learn_step(learner, batch, phase)
                 processed += 1
                 weights.publish(modules, processed)  # then its progress: the actor waits for that message
                 outbox.put(("progress", processed, dict(learner.last_losses), dict(learner.updates)))
@@ -285,12 +280,8 @@ class AsyncLearner:
         self._load()
 
     # -- what the records read --------------------------------------------------------------------
-    def owed_updates(self, phase: str) -> int:
-        return max(0, int(self.collector.counters[f"{phase}_steps"]) - self.heat_up)
-
     def updates_achieved(self) -> dict[str, float | None]:
-        return {phase: (self.updates[phase] / owed if (owed := self.owed_updates(phase)) else None)
-                for phase in ("forward", "reset")}
+        return updates_achieved(self.updates, self.collector.counters, self.heat_up)
 
     # -- the loop ---------------------------------------------------------------------------------
     def send(self, batch, phase: str) -> None:

@@ -18,7 +18,7 @@ from torchrl_reset_recipes.training.task_envs import UpdateBudget
 from torchrl_reset import DualCollector
 from torchrl_reset.accel import matmul_products
 
-__all__ = ["make_collector", "Learner", "NonFiniteLoss"]
+__all__ = ["make_collector", "Learner", "NonFiniteLoss", "updates_achieved"]
 
 
 def make_collector(spec: RunSpec, env, forward: Agent, reset: Agent) -> DualCollector:
@@ -49,6 +49,13 @@ def event_keys(env) -> list[str]:
 def restart_option(spec: RunSpec) -> dict:
     """The collector's ``restart_exploration`` from ``exploration.restart`` (configs without it: ``episode``)."""
     return {} if spec["exploration.restart"] == "episode" else {"restart_exploration": False}
+
+
+def updates_achieved(updates: dict, counters: dict, heat_up: int) -> dict[str, float | None]:
+    """Per agent, its ``updates`` as a fraction of Algorithm 1's count, one update per step of its phase past
+    ``heat_up`` (``counters``: the collector's); None while none is owed."""
+    owed = {phase: max(0, int(counters[f"{phase}_steps"]) - heat_up) for phase in ("forward", "reset")}
+    return {phase: (updates[phase] / owed[phase] if owed[phase] else None) for phase in owed}
 
 
 class NonFiniteLoss(RuntimeError):
@@ -122,14 +129,9 @@ class Learner:
             yield
         self.budget.record(phase, time.perf_counter() - started)
 
-    def owed_updates(self, phase: str) -> int:
-        """Algorithm 1's count for agent ``phase``: one update per step of its phase past ``heat_up``."""
-        return max(0, int(self.collector.counters[f"{phase}_steps"]) - self.heat_up)
-
     def updates_achieved(self) -> dict[str, float | None]:
-        """Per agent, the updates it made as a fraction of :meth:`owed_updates` (None while none is owed)."""
-        return {phase: (self.updates[phase] / owed if (owed := self.owed_updates(phase)) else None)
-                for phase in ("forward", "reset")}
+        """Per agent, the updates it made as a fraction of Algorithm 1's count (:func:`updates_achieved`)."""
+        return updates_achieved(self.updates, self.collector.counters, self.heat_up)
 
     def record_losses(self, phase: str, losses: dict[str, float]) -> None:
         """After an update of agent ``phase``: its losses, and one more update counted."""

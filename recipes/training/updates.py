@@ -8,7 +8,20 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl_reset_recipes.training.agents import Agent
 from torchrl_reset_recipes.training.learner import NonFiniteLoss
 
-__all__ = ["update", "optimizer_step"]
+__all__ = ["learn_step", "update", "optimizer_step"]
+
+
+def learn_step(learner, batch, phase: str) -> None:
+    """Algorithm 1's lines 16 / 23 and the updates after them: stores the collected step in its phase's buffer,
+    then updates that agent once per step taken, past its heat-up (the run's process with ``learner.mode=sync``,
+    the learner's process with ``async``)."""
+    learner.store(batch, phase)
+    agent = learner.agents[phase]  # pi_f and Q, or pi_r and the C_i (LNT: the Q_i)
+    for _ in range(batch.numel() if learner.updating(phase) else 0):
+        sample = learner.sample(phase)  # replay rows (ours: + success examples; LNT: + reward)
+        with learner.timed(phase):
+            losses = update(agent, sample, learner.losses[phase], release_order=learner.release_order)
+        learner.record_losses(phase, losses)
 
 
 def update(agent: Agent, sample, loss_module, *, release_order: bool) -> dict[str, float]:
