@@ -39,7 +39,6 @@ from pathlib import Path
 from typing import Callable
 
 import torch
-from hydra import compose, initialize_config_dir
 from tensordict import TensorDict
 from torch.utils._python_dispatch import TorchDispatchMode
 from torch.utils.flop_counter import flop_registry
@@ -47,7 +46,7 @@ from torch.utils.flop_counter import flop_registry
 ROOT = Path(__file__).resolve().parents[1]
 
 import torchrl  # noqa: E402
-from torchrl_reset_recipes import CONF
+from torchrl_reset_recipes.training.hydra_config import compose
 from torchrl_reset_recipes.training.agents import make_forward_agent, make_reset_agent
 from torchrl_reset_recipes.training.run_spec import run_spec
 from torchrl_reset_recipes.training.reset_agents import lnt_batch
@@ -59,10 +58,8 @@ OBS, ACT = 14, 7  # peg-insertion
 
 
 def paper_config(algo: str, **overrides):
-    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
-        cfg = compose(config_name="config", overrides=["task=peg_insertion_insert", f"algo={algo}", "preset=paper",
-                                                        *[f"{k}={v}" for k, v in overrides.items()]])
-    return cfg
+    return compose(["task=peg_insertion_insert", f"algo={algo}", "preset=paper",
+                    *[f"{k}={v}" for k, v in overrides.items()]])
 
 
 def action_spec():

@@ -30,10 +30,8 @@ import time
 from collections import defaultdict
 from pathlib import Path
 
-from hydra import compose, initialize_config_dir
 
 ROOT = Path(__file__).resolve().parents[1]
-CONF = ROOT / "recipes" / "conf"
 
 try:  # imported from the benchmarks package (the tests)
     from .bench_updates import describe, machine, write_results
@@ -98,15 +96,14 @@ def _base_env(env):
 def profile(overrides: list[str], steps: int, threads: int) -> dict:
     """Runs ``steps`` steps of the recipe with ``overrides`` and returns the timed parts (seconds, calls)."""
     from torchrl_reset import DualCollector
+    from torchrl_reset_recipes.training.hydra_config import compose
     from torchrl_reset_recipes.training.run_spec import run_spec
     from torchrl_reset_recipes.training.single_run import build_run, set_up_process
     from torchrl_reset_recipes.training.updates import update
 
     with tempfile.TemporaryDirectory() as folder:
-        with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
-            cfg = compose(config_name="config", overrides=[
-                f"total_steps={steps}", f"threads={threads}", "progress_bar=false", f"run_dir={folder}/run",
-                *overrides])
+        cfg = compose([f"total_steps={steps}", f"threads={threads}", "progress_bar=false", f"run_dir={folder}/run",
+                       *overrides])
         Path(cfg.run_dir).mkdir(parents=True)
         spec = run_spec(cfg)
         run = build_run(spec, set_up_process(spec))

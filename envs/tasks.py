@@ -41,6 +41,14 @@ class TaskSpec:
         title: the task's name in tables and figures (``"cliff-cheetah"``).
         paper: the paper's Table 1 row of each algorithm (1.5M steps, mean of 5 seeds): ``{algo: (return,
             manual resets, forward share, reset success rate)}``; empty for a task the paper does not have.
+        total_steps: the training length (forward and reset steps together): the paper's 1.5M, or 100k on the arm.
+        curriculum: ``(index, label)``: the observation entry that Fig. 5 plots just before each triggered reset.
+        exploration: the task's own exploration-noise settings over the recipe's global ``exploration.*`` (the
+            release's cliff-walker noise); empty for the others.
+        recipe_env: the recipe's default ``env.*`` arguments of :func:`make_env` (the UR3 tasks' backend).
+
+    The recipes' Hydra group ``task`` is built from this table (``torchrl_reset_recipes.training.hydra_config``):
+    a new task is its environment file and one entry here.
     """
 
     name: str
@@ -53,12 +61,19 @@ class TaskSpec:
     reconstructed: bool = False
     title: str = ""
     paper: dict[str, tuple[float, int, float, float]] = field(default_factory=dict)
+    total_steps: int = 1_500_000
+    curriculum: tuple[int, str] = (0, "observation[0]")
+    exploration: dict[str, float] = field(default_factory=dict)
+    recipe_env: dict[str, Any] = field(default_factory=dict)
 
     @property
     def gym_id(self) -> str | None:
         """The registered id, usable as ``gymnasium.make(f"torchrl_reset_envs:{spec.gym_id}")``."""
         return None if self.gym_name is None else f"{GYM_NAMESPACE}/{self.gym_name}"
 
+
+#: the UR3 tasks' recipe defaults: the MuJoCo twin; speed_limit (rad/s) is the action bound
+UR3_RECIPE_ENV = {"backend": "sim", "host": None, "speed_limit": 0.5}
 
 TASKS: dict[str, TaskSpec] = {
     spec.name: spec
@@ -68,28 +83,39 @@ TASKS: dict[str, TaskSpec] = {
         TaskSpec("ball_in_cup_catch", "BallInCupCatch-v0", BallInCupEnv, {"forward": "catch"}, 100, 0.1,
                  reconstructed=True, title="ball-in-cup (catch)",
                  paper={"lnt": (10.38, 276, 0.857, 0.993), "ours": (19.51, 331, 0.797, 0.968),
-                        "lnt_sparse": (5.48, 358, 0.890, 0.975)}),
+                        "lnt_sparse": (5.48, 358, 0.890, 0.975)},
+                 curriculum=(2, "ball x position (m)")),
         TaskSpec("peg_insertion_insert", "PegInsertionInsert-v0", PegInsertionEnv, {"forward": "insert"}, 100, 0.1,
                  title="peg-insertion (insert)",
                  paper={"lnt": (30.50, 251, 0.717, 0.985), "ours": (29.20, 343, 0.663, 0.966),
-                        "lnt_sparse": (1.60, 7175, 0.026, 0.744)}),
+                        "lnt_sparse": (1.60, 7175, 0.026, 0.744)},
+                 curriculum=(0, "shoulder pan angle (rad)")),
         TaskSpec("cliff_cheetah", "CliffCheetah-v0", CliffCheetahEnv, {}, 500, 0.05, True, title="cliff-cheetah",
                  paper={"lnt": (4.77, 835, 0.150, 0.857), "ours": (1.96, 371, 0.314, 0.948),
-                        "lnt_sparse": (2.96, 765, 0.154, 0.803)}),
+                        "lnt_sparse": (2.96, 765, 0.154, 0.803)},
+                 curriculum=(0, "x position (m)")),
         TaskSpec("ball_in_cup_throw", "BallInCupThrow-v0", BallInCupEnv, {"forward": "throw"}, 100, 0.1,
                  reconstructed=True, title="ball-in-cup (throw)",
                  paper={"lnt": (33.28, 359, 0.754, 0.991), "ours": (17.75, 1231, 0.479, 0.949),
-                        "lnt_sparse": (31.70, 1527, 0.525, 0.878)}),
+                        "lnt_sparse": (31.70, 1527, 0.525, 0.878)},
+                 curriculum=(2, "ball x position (m)")),
         TaskSpec("peg_insertion_remove", "PegInsertionRemove-v0", PegInsertionEnv, {"forward": "remove"}, 100, 0.1,
                  title="peg-insertion (remove)",
                  paper={"lnt": (44.57, 1714, 0.489, 0.931), "ours": (30.27, 2525, 0.326, 0.712),
-                        "lnt_sparse": (0.46, 7407, 0.006, 0.353)}),
+                        "lnt_sparse": (0.46, 7407, 0.006, 0.353)},
+                 curriculum=(0, "shoulder pan angle (rad)")),
         TaskSpec("cliff_walker", "CliffWalker-v0", CliffWalkerEnv, {}, 500, 0.05, True, title="cliff-walker",
                  paper={"lnt": (6.65, 1195, 0.057, 0.957), "ours": (6.29, 1305, 0.042, 0.687),
-                        "lnt_sparse": (0.00, 1415, 0.001, 0.949)}),
-        TaskSpec("ur3_peg", None, UR3Env, {"task": "peg"}, 100, 0.1, reconstructed=True, title="UR3 peg"),
+                        "lnt_sparse": (0.00, 1415, 0.001, 0.949)},
+                 curriculum=(0, "x position (m)"),
+                 exploration={"sigma": 0.01, "dt": 0.01}),  # the release's walker noise (both agents)
+        # the arm: H_f = 4 s at 25 Hz; on the real arm: train.py task=ur3_peg env.backend=rtde env.host=<address>
+        # (read "Before the first run on hardware" in docs/ur3.md first)
+        TaskSpec("ur3_peg", None, UR3Env, {"task": "peg"}, 100, 0.1, reconstructed=True, title="UR3 peg",
+                 total_steps=100_000, curriculum=(0, "cos(base joint angle)"), recipe_env=UR3_RECIPE_ENV),
         TaskSpec("ur3_reacher", None, UR3Env, {"task": "reacher"}, 100, 0.1, True, reconstructed=True,
-                 title="UR3 reacher"),
+                 title="UR3 reacher", total_steps=100_000, curriculum=(0, "cos(base joint angle)"),
+                 recipe_env=UR3_RECIPE_ENV),
     )
 }
 

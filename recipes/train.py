@@ -7,8 +7,8 @@
     python recipes/train.py -m task=cliff_cheetah algo=ours seed=0,1,2 task.p_thresh=0.1,0.3 \
         run_dir='runs/${task.name}/${algo.name}/p${task.p_thresh}/seed${seed}'  # Fig. 4: 6 runs
 
-Tasks: cliff_cheetah, cliff_walker, peg_insertion_insert, peg_insertion_remove, ball_in_cup_catch,
-ball_in_cup_throw. Everything lands in ``run_dir`` (default ``runs/<task>/<algo>/seed<seed>``):
+Tasks: every name of the task registry, ``torchrl_reset_envs.TASKS`` (the paper's six and the UR3 arm's two;
+``task=`` with no name lists them). Everything lands in ``run_dir`` (default ``runs/<task>/<algo>/seed<seed>``):
 ``progress.csv`` (the training metrics every ``log_every`` steps), ``eval.csv`` (one row per
 evaluation), ``triggers.csv`` (the state before each triggered reset), ``diagnostics.csv`` (the
 trigger's scores and the reset classifier on examples, replay and forward states, every
@@ -37,6 +37,7 @@ from torchrl_reset_recipes.training.checkpoints import CheckpointDamaged, Checkp
 from torchrl_reset_recipes.training.config_checks import RETIRED_KEYS, ConfigError, retired_key_problem, validate
 from torchrl_reset_recipes.training.learner import NonFiniteLoss
 from torchrl_reset_recipes.training.run_folder import RunFolderBusy, RunInterrupted, run_folder_lock, stop_on_signals
+from torchrl_reset_recipes.training.hydra_config import register_task_configs
 from torchrl_reset_recipes.training.run_spec import RunSpec, run_spec
 from torchrl_reset_recipes.training.single_run import RobotStopped, TrainingDiverged, build_run, set_up_process
 from torchrl_reset_recipes.training.updates import learn_step
@@ -181,6 +182,9 @@ def main() -> None:
         at = max((i + 1 for i, a in enumerate(args) if "=" in a and not a.startswith("-")), default=len(args))
         sys.argv = [sys.argv[0], *args[:at], *extra, *args[at:]]
     run_command()
+
+
+register_task_configs()  # the group task=<name>, from the task registry (envs/tasks.py TASKS)
 
 
 @hydra.main(version_base="1.3", config_path="conf", config_name="config")

@@ -1,7 +1,6 @@
 """Small hand-set networks whose outputs are known in closed form."""
 from __future__ import annotations
 
-from pathlib import Path
 
 import torch
 from tensordict.nn import TensorDictModule
@@ -45,7 +44,6 @@ def constant_actor(value: float, action_dim: int = 1) -> TensorDictModule:
     return TensorDictModule(ConstantActor(value, action_dim), in_keys=["observation"], out_keys=["action"])
 
 
-RECIPES_CONF = Path(__file__).resolve().parents[1] / "recipes" / "conf"
 #: the main job's settings shrunk to a few hundred steps of tiny networks
 QUICK_TINY = ["preset=quick", "task=ball_in_cup_catch", "hidden_sizes=[16,16]", "heat_up=40", "task.forward_horizon=20",
               "reset.batch_size=16", "forward.batch_size=16", "eval_every=100", "log_every=50", "checkpoint_every=100",
@@ -54,7 +52,6 @@ QUICK_TINY = ["preset=quick", "task=ball_in_cup_catch", "hidden_sizes=[16,16]", 
 
 def quick_config(run_dir, *overrides):
     """The recipe's configuration with :data:`QUICK_TINY` and ``overrides``, its run folder ``run_dir``."""
-    from hydra import compose, initialize_config_dir
+    from torchrl_reset_recipes.training.hydra_config import compose
 
-    with initialize_config_dir(config_dir=str(RECIPES_CONF), version_base="1.3"):
-        return compose(config_name="config", overrides=[*QUICK_TINY, f"run_dir={run_dir}", *overrides])
+    return compose([*QUICK_TINY, f"run_dir={run_dir}", *overrides])

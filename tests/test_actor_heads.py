@@ -5,7 +5,6 @@ from __future__ import annotations
 import csv
 import json
 import math
-from pathlib import Path
 
 import pytest
 import torch
@@ -16,7 +15,6 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl_reset.actor_heads import (InvertingGradientHead, InvertingGradients, InvertingHead, TanhHead,
                                        TanhNormalHead, Temperature, actor_penalties, head_from_settings, saturation)
 
-RECIPES = Path(__file__).resolve().parents[1] / "recipes"
 
 from torchrl_reset_recipes import train
 from torchrl_reset_recipes.training.agents import make_actor
@@ -201,10 +199,9 @@ def test_bad_actor_settings_are_refused(tmp_path, overrides, message):
     (["preset=paper", "reset_actor=rce"], "tanh_normal", "auto"),  # the command line's choice wins
 ])
 def test_the_default_reset_actor_is_the_projects_and_the_paper_preset_restores_the_releases(overrides, head, entropy):
-    from hydra import compose, initialize_config_dir
+    from torchrl_reset_recipes.training.hydra_config import compose
 
-    with initialize_config_dir(config_dir=str(RECIPES / "conf"), version_base="1.3"):
-        cfg = compose(config_name="config", overrides=overrides)
+    cfg = compose(overrides)
     assert (cfg.reset.actor.head, cfg.reset.actor.entropy) == (head, entropy)
     assert cfg.reset.actor.preact_penalty == 0.0 and cfg.reset.actor.action_l2 == 0.0
     assert list(cfg.hidden_sizes) == [400, 300]  # the paper's networks either way

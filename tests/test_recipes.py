@@ -13,7 +13,6 @@ from pathlib import Path
 
 import pytest
 import torch
-from hydra import compose, initialize_config_dir
 from tensordict import TensorDict
 from torchrl.objectives import DDPGLoss
 
@@ -23,6 +22,7 @@ from torchrl_reset_recipes.training import single_run
 
 from torchrl_reset_recipes.training.run_spec import run_spec
 from torchrl_reset_recipes import train
+from torchrl_reset_recipes.training.hydra_config import compose
 from torchrl_reset_envs import make_env  # noqa: E402
 from torchrl_reset_recipes.training.agents import make_actor, make_reset_agent
 from torchrl_reset_recipes.training.reset_agents import lnt_batch
@@ -43,8 +43,7 @@ TINY = [
 
 
 def config(tmp_path, *overrides):
-    with initialize_config_dir(config_dir=str(RECIPES / "conf"), version_base="1.3"):
-        return compose(config_name="config", overrides=[*TINY, f"run_dir={tmp_path}", *overrides])
+    return compose([*TINY, f"run_dir={tmp_path}", *overrides])
 
 
 def rows(path):

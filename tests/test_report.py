@@ -11,7 +11,6 @@ import matplotlib.image as mpimg
 import pytest
 
 
-from torchrl_reset_recipes import CONF
 from torchrl_reset_recipes.analysis import figures, report
 from torchrl_reset_recipes.analysis import runs as run_groups
 
@@ -147,11 +146,11 @@ def test_step_axes_read_in_thousands_and_millions():
 def _config_yaml(*overrides: str, drop: str | None = None, task: str = "peg_insertion_insert") -> str:
     """A run's config.yaml as train.py writes it (the recipe config of ``task`` at the paper preset, resolved), with ``drop``
     removed as from a config written before that setting existed."""
-    from hydra import compose, initialize_config_dir
     from omegaconf import OmegaConf, open_dict
 
-    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
-        cfg = compose(config_name="config", overrides=[f"task={task}", "algo=ours", "preset=paper", *overrides])
+    from torchrl_reset_recipes.training.hydra_config import compose
+
+    cfg = compose([f"task={task}", "algo=ours", "preset=paper", *overrides])
     if drop is not None:
         section, key = drop.split(".")
         with open_dict(cfg):

@@ -13,11 +13,10 @@ import signal
 from pathlib import Path
 
 import pytest
-from hydra import compose, initialize_config_dir
 
-RECIPES = Path(__file__).resolve().parents[1] / "recipes"
 
 from torchrl_reset_recipes import train
+from torchrl_reset_recipes.training.hydra_config import compose
 from torchrl_reset_recipes.training.config_checks import ConfigError, validate
 from torchrl_reset_recipes.training.run_spec import should_resume
 from torchrl_reset_recipes.training.checkpoints import Checkpoints, checkpoint_problems, checkpoint_step, identity_differences
@@ -31,8 +30,7 @@ TINY = [
 
 
 def config(run_dir, *overrides):
-    with initialize_config_dir(config_dir=str(RECIPES / "conf"), version_base="1.3"):
-        return compose(config_name="config", overrides=[*TINY, f"run_dir={run_dir}", *overrides])
+    return compose([*TINY, f"run_dir={run_dir}", *overrides])
 
 
 def rows(path, drop=("steps_per_second",)):

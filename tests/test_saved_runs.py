@@ -11,12 +11,11 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
-from hydra import compose, initialize_config_dir
 
 ROOT = Path(__file__).resolve().parents[1]
-RECIPES = ROOT / "recipes"
 
 from torchrl_reset_recipes import train
+from torchrl_reset_recipes.training.hydra_config import compose
 from torchrl_reset_recipes.analysis.saved_runs import latest_checkpoint, load_replay, run_config, run_table
 
 #: a few hundred steps of small networks, both agents updating (heat-up 40), checkpoints and kept states at
@@ -40,9 +39,7 @@ class Runs:
 
 def _train(root: Path, task: str, algo: str, *overrides: str) -> Path:
     run_dir = root / task / algo / "seed0"
-    with initialize_config_dir(config_dir=str(RECIPES / "conf"), version_base="1.3"):
-        cfg = compose(config_name="config", overrides=[*TINY, f"task={task}", f"algo={algo}", f"run_dir={run_dir}",
-                                                       *overrides])
+    cfg = compose([*TINY, f"task={task}", f"algo={algo}", f"run_dir={run_dir}", *overrides])
     summary = train.train(cfg)
     assert summary["finished"] and summary["steps"] == STEPS
     return run_dir

@@ -536,15 +536,12 @@ def test_render_gives_frames_or_a_clear_error_and_the_env_keeps_working():
         assert make_gym_env("ball_in_cup_catch").render() is None
 
 
-@pytest.mark.parametrize("task", list(TASKS))
-def test_the_recipes_task_config_states_the_envs_horizon_and_threshold(task):
-    """H_f and p_thresh are stated by the env's task spec and by the recipe's task config: they must agree."""
-    from pathlib import Path
+@pytest.mark.parametrize("task", ALL_TASKS)
+def test_the_recipes_task_config_states_the_papers_horizon_and_threshold(task):
+    """The recipe's ``task=<name>`` (built from the registry) carries tasks.md's H_f and p_thresh."""
+    from torchrl_reset_recipes.training.hydra_config import compose
 
-    from omegaconf import OmegaConf
-
-    conf = OmegaConf.load(Path(__file__).resolve().parents[1] / "recipes" / "conf" / "task" / f"{task}.yaml")
-    conf = conf.task if "task" in conf else conf  # the UR3 configs are global packages
-    spec = task_spec(task)
+    horizon, p_thresh, _, _ = PAPER_NUMBERS[task]
+    conf = compose([f"task={task}"]).task
     assert conf.name == task
-    assert (conf.forward_horizon, conf.p_thresh) == (spec.forward_horizon, spec.p_thresh)
+    assert (conf.forward_horizon, conf.p_thresh) == (horizon, p_thresh)

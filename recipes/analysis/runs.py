@@ -183,14 +183,13 @@ def recipe_defaults(task: str, algo: str) -> dict:
     """The settings ``train.py preset=paper task=<task> algo=<algo>`` runs with (the paper's preset), flattened; empty
     for a task or algorithm this checkout does not know. Keys that older runs' configs lack (a setting
     added since) take these values."""
-    conf = CONF
-    if not (conf / "task" / f"{task}.yaml").exists() or not (conf / "algo" / f"{algo}.yaml").exists():
+    if task not in TASKS or not (CONF / "algo" / f"{algo}.yaml").exists():
         return {}
-    from hydra import compose, initialize_config_dir
     from omegaconf import OmegaConf
 
-    with initialize_config_dir(config_dir=str(conf), version_base="1.3"):
-        cfg = compose(config_name="config", overrides=["preset=paper", f"task={task}", f"algo={algo}"])
+    from torchrl_reset_recipes.training.hydra_config import compose
+
+    cfg = compose(["preset=paper", f"task={task}", f"algo={algo}"])
     return _flatten(OmegaConf.to_container(cfg, resolve=True))
 
 

@@ -16,6 +16,7 @@ from torchrl_reset_recipes.training.reset_agents import KINDS
 from torchrl_reset_recipes.training.streams import STREAMS
 from torchrl_reset_recipes.training.checkpoints import Checkpoints, identity_differences, no_intact_checkpoint
 from torchrl_reset_envs import TASKS
+from torchrl_reset_recipes.training.hydra_config import task_node
 
 __all__ = ["ALGOS", "ConfigError", "validate", "reset_horizon", "should_resume", "recipe_settings", "unknown_settings", "RETIRED_KEYS",
            "retired_key_problem"]
@@ -180,22 +181,26 @@ def validate(cfg: DictConfig) -> None:
 
 
 
-@functools.lru_cache(maxsize=None)
 def recipe_settings(conf: Path = CONF) -> tuple[frozenset[str], frozenset[str]]:
-    """The settings the recipe defines, as dotted keys: those of ``config.yaml`` and of every option of its
-    groups (``task/``, ``algo/``, ``preset/``), each where Hydra puts it (under the group's name, or where
-    the file's ``# @package`` header says). Also returns the open mappings: an empty mapping in a file
-    (``env: {}``) holds another function's keyword arguments, which that function checks."""
+    """The settings the recipe defines, as dotted keys: those of ``config.yaml``, of every option of its
+    groups (``algo/``, ``preset/``, ``reset_actor/``), each where Hydra puts it (under the group's name, or where
+    the file's ``# @package`` header says), and of every task of the registry (:func:`.hydra_config.task_node`).
+    Also returns the open mappings: an empty mapping in a file (``env: {}``) holds another function's keyword
+    arguments, which that function checks."""
+    file_keys, file_open = _file_settings(conf)
+    keys, open_mappings = set(file_keys), set(file_open)
+    for spec in TASKS.values():  # read at each call: a task added to the registry is known at once
+        _add_keys(task_node(spec), "", keys, open_mappings)
+    return frozenset(keys), frozenset(open_mappings)
+
+
+@functools.lru_cache(maxsize=None)
+def _file_settings(conf: Path) -> tuple[frozenset[str], frozenset[str]]:
+    """The settings of ``conf``'s files: ``config.yaml`` and its groups' options (:func:`recipe_settings`)."""
     keys, open_mappings = set(), set()
 
     def add(node: dict, prefix: str) -> None:
-        for key, value in node.items():
-            path = f"{prefix}{key}"
-            keys.add(path)
-            if isinstance(value, dict):
-                if not value:
-                    open_mappings.add(path)
-                add(value, f"{path}.")
+        _add_keys(node, prefix, keys, open_mappings)
 
     root = OmegaConf.to_container(OmegaConf.load(conf / "config.yaml"), resolve=False)
     for hydra_key in ("defaults", "hydra"):
@@ -210,6 +215,17 @@ def recipe_settings(conf: Path = CONF) -> tuple[frozenset[str], frozenset[str]]:
             node.pop("defaults", None)  # the option's own choices of other groups (preset=paper's reset actor)
             add(node, "" if package == "_global_" else f"{package}.")
     return frozenset(keys), frozenset(open_mappings)
+
+
+def _add_keys(node: dict, prefix: str, keys: set, open_mappings: set) -> None:
+    """Adds the dotted keys of ``node`` under ``prefix`` to ``keys``, and its empty mappings to ``open_mappings``."""
+    for key, value in node.items():
+        path = f"{prefix}{key}"
+        keys.add(path)
+        if isinstance(value, dict):
+            if not value:
+                open_mappings.add(path)
+            _add_keys(value, f"{path}.", keys, open_mappings)
 
 
 def _package_header(path: Path) -> str | None:
