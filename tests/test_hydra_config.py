@@ -83,3 +83,32 @@ def test_a_new_task_is_one_registry_entry(new_task, tmp_path):
     assert summary["task"] == "cliff_sprinter" and summary["steps"] == cfg.total_steps and summary["finished"]
     assert summary["p_thresh"] == 0.2
     assert new_task.env_class is CliffCheetahEnv
+
+
+def test_the_absent_key_table_names_only_settings_the_recipe_defines():
+    from torchrl_reset_recipes.training.absent_keys import ABSENT_KEYS, DEFAULTS, FALLBACKS
+    from torchrl_reset_recipes.training.config_checks import recipe_settings
+
+    keys, _ = recipe_settings()
+    assert set(DEFAULTS) == set(ABSENT_KEYS) | set(FALLBACKS) and not set(ABSENT_KEYS) & set(FALLBACKS)
+    assert sorted(k for k in DEFAULTS if k not in keys) == []  # a renamed or dropped key cannot linger here
+
+
+def test_a_configuration_without_the_release_keys_runs_as_before_them(tmp_path):
+    """A config.yaml written before the release audit lacks its keys: it means the recipe's earlier behaviour
+    (docs/release-audit.md: noise restarted each episode and projected onto the box, one joint step on both
+    losses, transitions sampled uniformly, every target a copy), not today's release values."""
+    from omegaconf import open_dict
+
+    from torchrl_reset_recipes.training.run_spec import run_spec
+
+    cfg = compose([f"run_dir={tmp_path}", "algo=ours"])
+    today = run_spec(cfg, check=False)
+    assert (today["exploration.restart"], today["update_order"], today["target_init"]) == ("never", "release", "release")
+    with open_dict(cfg):
+        for section, key in (("exploration", "restart"), ("exploration", "clip"), (None, "update_order"),
+                             ("forward", "sampling"), (None, "target_init")):
+            (cfg[section] if section else cfg).pop(key)
+    old = run_spec(cfg, check=False)
+    assert (old["exploration.restart"], old["exploration.clip"], old["update_order"], old["forward.sampling"],
+            old["target_init"]) == ("episode", True, "joint", "transition", "copy")

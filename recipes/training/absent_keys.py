@@ -1,15 +1,22 @@
-"""What a configuration without a key ran with.
+"""What a configuration without a key runs with: one table for the training code and the report.
 
-The keys that made the recipe follow the authors' release (commit ``d7b4986``) arrived with the earlier
-behaviour as their fallback: a run whose ``config.yaml`` predates them resumes as it ran, and the report
-reads its settings the same way. The paper preset (``conf/``) sets today's values; this table holds what
-the absence of each key means, in one place for the training code and the report.
+Today's values live in one place, the configuration (``conf/`` and the task registry); this module holds
+only what the *absence* of a key means, which is history, not a second copy of the defaults:
+
+- :data:`ABSENT_KEYS`: the keys that changed what a run computes when they arrived (those that made the recipe
+  follow the authors' release, commit ``d7b4986``, and later ones), each with the behaviour before it. A run whose
+  ``config.yaml`` predates a key resumes as it ran, and the report labels it by what it ran.
+- :data:`FALLBACKS`: the keys of today's configuration that code reading an older or hand-made configuration
+  must still answer (speed settings, optional task entries); the report reads them as the recipe's defaults.
+- :data:`DEFAULTS`: both, what :func:`~.run_spec.run_spec` reads every setting through.
 """
 from __future__ import annotations
 
+from types import MappingProxyType
+
 from omegaconf import DictConfig, OmegaConf
 
-__all__ = ["ABSENT_KEYS", "setting"]
+__all__ = ["ABSENT_KEYS", "DEFAULTS", "FALLBACKS", "setting"]
 
 #: key -> the behaviour of a configuration without it (the recipe's behaviour before the key existed)
 ABSENT_KEYS = {
@@ -34,6 +41,26 @@ ABSENT_KEYS = {
     "learner.max_lag": 0,
     "learner.timeout": 60,
 }
+
+
+#: settings that every configuration of today's recipe holds, and what code reading an older or hand-made
+#: configuration without them uses (the report reads such runs through :data:`ABSENT_KEYS` alone)
+FALLBACKS = {
+    "speed.accelerate": True,
+    "speed.fused_adam": False,
+    "speed.retain_memory": True,
+    "speed.matmul_precision": "ieee",
+    "speed.compile": [],
+    "keep_states_every": None,
+    "reset.tau": None,                       # None: the shared tau
+    "task.exploration": None,                # the task's own exploration.* entries (cliff-walker's)
+    "algo.clip_target_values": False,
+    "algo.nstep_sampling": "episode",
+    "algo.reward_bounds": None,
+    "algo.initial_logit_bias": None,
+}
+#: every setting with a default, in one table: what a configuration without the key runs with
+DEFAULTS = MappingProxyType({**ABSENT_KEYS, **FALLBACKS})
 
 
 def setting(cfg: DictConfig, key: str):

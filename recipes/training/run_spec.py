@@ -15,30 +15,12 @@ from typing import Any, Mapping
 
 from omegaconf import DictConfig, OmegaConf
 
-from torchrl_reset_recipes.training.absent_keys import ABSENT_KEYS
+from torchrl_reset_recipes.training.absent_keys import DEFAULTS, FALLBACKS
 from torchrl_reset_recipes.training.config_checks import reset_horizon, should_resume, validate
 from torchrl_reset_recipes.training.reset_agents import KINDS, ResetAgentKind
 
 __all__ = ["RunSpec", "run_spec", "DEFAULTS", "FALLBACKS", "reset_horizon", "torch_threads", "should_resume"]
 
-#: settings that every configuration of today's recipe holds, and what code reading an older or hand-made
-#: configuration without them uses (the report reads such runs through :data:`ABSENT_KEYS` alone)
-FALLBACKS = {
-    "speed.accelerate": True,
-    "speed.fused_adam": False,
-    "speed.retain_memory": True,
-    "speed.matmul_precision": "ieee",
-    "speed.compile": [],
-    "keep_states_every": None,
-    "reset.tau": None,                       # None: the shared tau
-    "task.exploration": None,                # the task's own exploration.* entries (cliff-walker's)
-    "algo.clip_target_values": False,
-    "algo.nstep_sampling": "episode",
-    "algo.reward_bounds": None,
-    "algo.initial_logit_bias": None,
-}
-#: every setting with a default, in one table: what a configuration without the key runs with
-DEFAULTS = MappingProxyType({**ABSENT_KEYS, **FALLBACKS})
 
 
 @dataclass(frozen=True)
