@@ -110,6 +110,7 @@ class RTDEBackend(UR3Backend):
         self._closed = False
         self._lock = threading.RLock()  # ur_rtde calls from the step and from the watchdog thread
         self._last_command = None
+        self._stop_failure_logged_for = None  # the last command whose following stall logged a failed speedStop
         self._watchdog_stopped = False
         self._watchdog_thread = None
         self._watchdog_quit = threading.Event()
@@ -197,8 +198,12 @@ class RTDEBackend(UR3Backend):
             idle = self._clock() - self._last_command
             if not self._safe_stop():
                 # not stopped: try again at the next check, and never feed the controller's watchdog,
-                # which then stops the control script itself
-                log.error("UR3: no command for %.0f ms and speedStop failed.", 1000 * idle)
+                # which then stops the control script itself; said once per stretch without commands (a
+                # protectively stopped controller refuses speedStop for as long as the stop lasts)
+                if self._stop_failure_logged_for != self._last_command:
+                    self._stop_failure_logged_for = self._last_command
+                    log.error("UR3: no command for %.0f ms and speedStop failed (retried every check, said once "
+                              "until the next command).", 1000 * idle)
                 return False
             self._watchdog_stopped = True
             self.watchdog_stops += 1

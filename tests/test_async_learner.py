@@ -1,15 +1,22 @@
 """learner.mode=async: the learner in a process of its own. Lockstep equals the single process exactly; a lagging
 learner still makes every update Algorithm 1 owes; a crashed or hung learner stops the run with a clear error and
-the last checkpoint; bad weights are refused. (Ctrl-C and an exact lockstep resume: test_recipes.py.)"""
+the last checkpoint; bad weights and other priors are refused; on the real arm's backend (the fake ur_rtde) a
+protective stop while the learner is busy is the actor's alone. (Ctrl-C and an exact lockstep resume:
+test_recipes.py.)"""
 from __future__ import annotations
 
+import copy
 import csv
 import multiprocessing
+import sys
+import time
+from types import SimpleNamespace
 
 import pytest
 import torch
 from torch import nn
 
+from fake_ur_rtde import PROTECTIVE_STOP, FakeURController
 from helpers import quick_config
 from torchrl_reset_recipes import train
 from torchrl_reset_recipes.training.async_learner import AsyncLearner, LearnerFailed, SharedWeights
@@ -79,6 +86,94 @@ def test_weights_of_another_layout_are_refused():
     source = nn.Linear(3, 2)
     weights.publish({"reset_model": source}, 3)
     assert weights.load({"reset_model": target}) == 3 and torch.equal(target.weight, source.weight)
+
+
+class WithPriors(nn.Module):
+    """A reset model in miniature: trained weights and fixed priors (named as the ensemble names them)."""
+
+    def __init__(self):
+        super().__init__()
+        self.weight_0 = nn.Parameter(torch.randn(3, 2))
+        self.prior_weight_0 = nn.Parameter(torch.randn(3, 2), requires_grad=False)
+
+
+def test_a_learner_with_other_priors_is_refused_and_no_publication_changes_the_actors_priors():
+    ctx = multiprocessing.get_context("spawn")
+    actor = WithPriors()
+    weights = SharedWeights(ctx, {"reset_model": actor})
+    learner = copy.deepcopy(actor)
+    weights.check_priors({"reset_model": learner})  # the same priors: accepted
+    with pytest.raises(LearnerFailed, match="other priors"):
+        weights.check_priors({"reset_model": WithPriors()})  # drawn again: refused
+    priors = actor.prior_weight_0.detach().clone()
+    with torch.no_grad():
+        learner.weight_0.add_(1.0)
+        learner.prior_weight_0.add_(1.0)  # a learner that changed its priors cannot pass them on
+    weights.publish({"reset_model": learner}, 1)
+    assert weights.load({"reset_model": actor}) == 1
+    assert torch.equal(actor.weight_0, learner.weight_0) and torch.equal(actor.prior_weight_0, priors)
+
+
+@pytest.fixture
+def fake_arm(monkeypatch):
+    """ur_rtde's three modules, faked (tests/fake_ur_rtde.py) on the real clock: the recipe's rtde path as on an arm."""
+    controller = FakeURController(time.monotonic)
+    monkeypatch.setitem(sys.modules, "rtde_control", SimpleNamespace(RTDEControlInterface=controller.control))
+    monkeypatch.setitem(sys.modules, "rtde_receive", SimpleNamespace(RTDEReceiveInterface=controller.receive))
+    monkeypatch.setitem(sys.modules, "dashboard_client", SimpleNamespace(DashboardClient=controller.dashboard))
+    return controller
+
+
+def test_on_the_arm_a_protective_stop_while_the_learner_is_busy_is_handled_by_the_actor_alone(tmp_path, monkeypatch,
+                                                                                              fake_arm):
+    """The stop ends the episode at once; the actor neither waits for the learner nor loads weights until the arm is
+    unlocked and home (every load happens with the controller out of its protective stop); then training goes on
+    and every owed update is made."""
+    events = []  # ("stop", home moves so far) at the stop; ("halted", lag, moves) when the actor learns of it; ...
+    send, load, wait_until, after_step = (AsyncLearner.send, AsyncLearner._load, AsyncLearner._wait_until,
+                                          AsyncLearner.after_step)
+
+    def busy_then_stop(self, batch, phase):
+        send(self, batch, phase)
+        if self.sent == 60:  # past heat-up: the learner sleeps 1 s on its next message, and the arm stops
+            self.inbox.put(("hang", 1.0))
+            fake_arm.protective_stop()
+            events.append(("stop", fake_arm.names().count("moveJ")))
+
+    def recorded_load(self):
+        events.append(("load", fake_arm.names().count("moveJ"), fake_arm.safety_mode, fake_arm.program_running))
+        load(self)
+
+    def recorded_wait(self, processed, why):
+        events.append(("wait", fake_arm.safety_mode))
+        wait_until(self, processed, why)
+
+    def recorded_after_step(self, episode_ended, halted=False):
+        if halted:
+            events.append(("halted", self.sent - self.processed, fake_arm.names().count("moveJ")))
+        after_step(self, episode_ended, halted)
+
+    for name, method in (("send", busy_then_stop), ("_load", recorded_load), ("_wait_until", recorded_wait),
+                         ("after_step", recorded_after_step)):
+        monkeypatch.setattr(AsyncLearner, name, method)
+    cfg = quick_config(tmp_path, "learner.streams=separate", "learner.mode=async", "learner.max_lag=50",
+                       "task=ur3_peg", "task.forward_horizon=20", "env.backend=rtde", "env.host=ur3.fake",
+                       "total_steps=120")
+    summary = train.train(cfg)
+    assert summary["finished"] and summary["steps"] == 120
+    assert summary["protective_stops"] == 1 and fake_arm.protective_stops == 1
+    stop = next(i for i, e in enumerate(events) if e[0] == "stop")
+    halts = [i for i, e in enumerate(events) if e[0] == "halted"]
+    assert len(halts) == 1 and halts[0] > stop
+    moves_at_stop = events[stop][1]
+    _, lag, moves_at_halt = events[halts[0]]
+    assert lag >= 1  # the learner was busy (behind the actor) when the actor learnt of the stop
+    assert moves_at_halt > moves_at_stop  # the collector's manual reset (unlock, home) came before any learner call
+    assert all(e[0] != "wait" for e in events[stop:halts[0]])  # the actor never waited on the learner meanwhile
+    _, moves, mode, running = next(e for e in events[halts[0]:] if e[0] == "load")
+    assert moves > moves_at_stop and mode != PROTECTIVE_STOP and running  # the next weights: unlocked and home
+    assert summary["updates_achieved"]["reset"] == 1.0  # late, but kept (the forward agent may still be heating up)
+    assert summary["updates_achieved"]["forward"] in (None, 1.0)
 
 
 @pytest.mark.parametrize("overrides, text", [

@@ -514,6 +514,24 @@ def test_host_watchdog_that_cannot_stop_the_arm_never_feeds_the_controller_watch
     assert backend.watchdog_stops == 1 and robot.program_running and robot.watchdog_trips == 1
 
 
+def test_a_protective_stop_that_refuses_speedstop_is_logged_once_per_stretch_without_commands(rtde, caplog):
+    """The watchdog thread checks every 10 ms; a protectively stopped controller refuses speedStop for the
+    whole stop (5 s at least before an unlock): one error line, not 500. A new stretch after a command says it anew."""
+    backend, robot, clock = rtde
+    failures = lambda: sum("speedStop failed" in r.getMessage() for r in caplog.records)  # noqa: E731
+    with caplog.at_level("ERROR", logger="torchrl_reset_envs"):
+        for stretch in (1, 2):
+            backend.speedj(np.full(6, 0.02))
+            robot.protective_stop()
+            clock.t += 0.13  # past the host watchdog's 3 periods
+            for _ in range(100):  # one second of checks, every 10 ms
+                assert not backend.check_watchdog()
+                clock.t += 0.01
+            assert failures() == stretch
+            clock.t += 5.0  # the controller's 5 s, then recovery as the manual reset does it
+            assert backend.recover()
+
+
 def test_the_move_home_is_not_taken_when_its_path_leaves_the_boxes(rtde):
     backend, robot, clock = rtde
     limits = backend.limits

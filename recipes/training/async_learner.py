@@ -77,7 +77,9 @@ def digest(tensors: dict) -> str:
 
 class SharedWeights:
     """Versioned weights in shared memory: :meth:`publish` (the learner) and :meth:`load` (the actor, between
-    steps) copy whole modules' states under one lock, so a load never mixes two publications."""
+    steps) copy whole modules' states under one lock, so a load never mixes two publications. The reset model's
+    fixed priors are the actor's, shared once: a publication leaves them out, and a learner whose priors differ is
+    refused (:meth:`check_priors`)."""
 
     def __init__(self, ctx, modules: dict[str, torch.nn.Module]) -> None:
         self.tensors = {name: {k: v.detach().clone().share_memory_() for k, v in module.state_dict().items()}
@@ -96,7 +98,8 @@ class SharedWeights:
                     raise LearnerFailed(f"the learner's {name} has entries {sorted(set(state) ^ set(self.tensors[name]))} "
                                         "that the actor's layout does not: refused")
                 for key, value in state.items():
-                    self.tensors[name][key].copy_(value)
+                    if "prior" not in key:  # fixed: shared once, by the actor
+                        self.tensors[name][key].copy_(value)
             self.version.value = version
 
     def load(self, modules: dict[str, torch.nn.Module]) -> int:
@@ -107,6 +110,11 @@ class SharedWeights:
 
     def prior_digest(self) -> str:
         return digest(_priors(self.tensors["reset_model"]))
+
+    def check_priors(self, modules: dict[str, torch.nn.Module]) -> None:
+        """Refuses a learner whose reset model has other fixed priors than the actor's (by digest)."""
+        if self.prior_digest() != digest(_priors(modules["reset_model"].state_dict())):
+            raise LearnerFailed("the learner's reset model has other priors than the actor's: refused")
 
 
 # ------------------------------------------------------------------------------------------------ learner
@@ -161,8 +169,7 @@ def _serve(cfg: DictConfig, weights, inbox, outbox, resume_from, example_keys, e
         for name, rb in (("forward_buffer", forward_rb), ("reset_buffer", reset_rb)):
             if (Path(resume_from) / name).exists():
                 rb.loads(Path(resume_from) / name)
-    if weights.prior_digest() != digest(_priors(modules["reset_model"].state_dict())):
-        raise LearnerFailed("the learner's reset model has other priors than the actor's: refused")
+    weights.check_priors(modules)
     weights.publish(modules, processed)
     outbox.put(("ready", processed))
     with streams.use("learner"):
