@@ -50,6 +50,13 @@ def test_a_lagging_learner_still_makes_every_update_algorithm_1_owes(tmp_path):
     stats = summary["learner"]
     assert stats["max_lag"] == 30 and stats["lag_steps"]["mean"] >= 0
     assert set(stats["updates_achieved_when_acting_ended"]) == {"forward", "reset"}
+    # progress.csv, per log window: the lag and the weights' age; the windows together hold every sample of the
+    # summary's, so the largest window maximum is the run's
+    table = rows(tmp_path / "progress.csv")
+    lag_mean, lag_max, age = ([float(r[k]) for r in table] for k in ("learner_lag_mean", "learner_lag_max",
+                                                                     "weight_age_mean"))
+    assert all(0 <= m <= x for m, x in zip(lag_mean, lag_max)) and min(age) >= 0
+    assert max(lag_max) == stats["lag_steps"]["max"]
 
 
 @pytest.mark.parametrize("fault, message", [(("fail",), "the learner process failed"), (("hang", 60.0), "hung")])

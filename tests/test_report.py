@@ -442,6 +442,28 @@ def test_diagnostics_series_are_told_apart_and_say_what_they_plot(tmp_path, monk
     figures.plt.close(fig)
 
 
+def test_an_async_learners_lag_and_weight_age_get_a_panel_of_their_own(tmp_path):
+    runs = tmp_path / "runs"
+    header = ["frames", "successful_resets", "manual_resets", "learner_lag_mean", "learner_lag_max", "weight_age_mean"]
+    for seed, lag in ((0, 0.0), (1, 12.5)):  # one run in lockstep (never behind), one lagging
+        write_run(runs, "ours", seed, steps=4000, diagnostics=_diagnostics(0.0), resets=_resets(),
+                  progress=(header, [(1000 * k, k // 2, k - k // 2, lag * k, 3 * lag * k, lag * k + 1)
+                                     for k in range(1, 5)]))
+    fig = figures.draw_diagnostics("peg_insertion_insert", "ours", "", run_groups.find_runs([runs]))
+    assert len(fig.axes) == 5  # the four panels, then the learner's (these runs logged no saturation)
+    lag = fig.axes[4]
+    assert "lag" in lag.get_title() and list(_lines(lag)["seed 1: learner_lag_mean"].get_ydata()) == [12.5, 25, 37.5, 50]
+    assert list(_lines(lag)["seed 1: weight_age_mean"].get_ydata()) == [13.5, 26, 38.5, 51]
+    figures.plt.close(fig)
+    still = tmp_path / "still"
+    for seed in (0, 1):  # runs that never lagged (sync, lockstep): no such panel
+        write_run(still, "ours", seed, steps=4000, diagnostics=_diagnostics(0.0), resets=_resets(),
+                  progress=(header, [(1000 * k, k // 2, k - k // 2, 0, 0, 0) for k in range(1, 5)]))
+    fig = figures.draw_diagnostics("peg_insertion_insert", "ours", "", run_groups.find_runs([still]))
+    assert len(fig.axes) == 4
+    figures.plt.close(fig)
+
+
 def test_lnt_diagnostics_say_q_and_q_thresh_where_they_plot_q(tmp_path):
     runs = tmp_path / "runs"
     for seed in range(2):

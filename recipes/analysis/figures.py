@@ -380,7 +380,11 @@ def draw_diagnostics(task: str, algo: str, setting: str, members: list[RunFolder
     progress = [run.table("progress.csv") for run in runs]
     stretch = _stretch(progress)
     saturation = any("reset_saturation" in prog for prog in progress)  # runs that logged it (every run since it exists)
-    fig, axes = plt.subplots(1, 5 if saturation else 4, figsize=(22.5 if saturation else 18, 4.8), layout="constrained")
+    # learner.mode=async runs: the learner's lag behind the actor and the age of the weights in use
+    lagging = any(np.nanmax(prog.get("learner_lag_max", [0]), initial=0) > 0 for prog in progress)
+    panels = 4 + saturation + lagging
+    fig, axes = plt.subplots(1, panels, figsize=(4.5 * panels, 4.8), layout="constrained")
+    lag_ax = axes[4 + saturation] if lagging else None
     colors, labels = _run_colors(len(runs)), _run_labels(runs)
     outcomes_seen = []
     for (run, t), color, label, prog in zip(tables, colors, labels, progress):
@@ -397,6 +401,10 @@ def draw_diagnostics(task: str, algo: str, setting: str, members: list[RunFolder
             for column, style, actor in (("reset_saturation", "-", "reset"), ("forward_saturation", ":", "forward")):
                 if column in prog:
                     axes[4].plot(prog["frames"], 100 * prog[column], color=color, ls=style, label=f"{label}: {actor}")
+        if lagging:
+            for column, style in (("learner_lag_mean", "-"), ("weight_age_mean", ":")):
+                if column in prog:
+                    lag_ax.plot(prog["frames"], prog[column], color=color, ls=style, label=f"{label}: {column}")
         resets = run.table("resets.csv", text=("outcome",))
         if "distance_to_start" in resets:
             outcome = resets.get("outcome", np.full(len(resets["frames"]), "?"))
@@ -444,8 +452,14 @@ def draw_diagnostics(task: str, algo: str, setting: str, members: list[RunFolder
         + threshold_lines,
         [],
         [key("none", OUTCOME_MARKERS.get(kind, "^"), kind) for kind in outcomes_seen] + bound_lines,
-        [key("-", label="reset actor"), key(":", label="forward actor")],
     ]
+    if saturation:
+        legends.append([key("-", label="reset actor"), key(":", label="forward actor")])
+    if lagging:
+        lag_ax.set(title="learner process: lag behind the actor, age of the weights acting", xlabel="steps",
+                   ylabel=f"steps (mean over each {per_row}steps)")
+        legends.append([key("-", label="lag: steps sent, not yet learnt from"),
+                        key(":", label="age of the weights in use")])
     for ax, handles in zip(axes, legends):
         ax.grid(alpha=0.3)
         if handles:

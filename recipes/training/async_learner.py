@@ -241,6 +241,15 @@ class LagStats:
                 "queue_depth": {"mean": self.depth_sum / n, "max": self.depth_max},
                 "boundary_waits": self.waits, "boundary_wait_seconds": round(self.wait_seconds, 3)}
 
+    def fields(self) -> dict:
+        """``progress.csv``'s learner columns (:data:`~.learner.LEARNER_FIELDS`) over these samples."""
+        n = max(self.count, 1)
+        return {"learner_lag_mean": self.lag_sum / n, "learner_lag_max": self.lag_max,
+                "weight_age_mean": self.age_sum / n, "queue_depth_max": self.depth_max,
+                "boundary_wait_seconds": round(self.wait_seconds, 3)}
+
+
+
 
 class AsyncLearner:
     """The actor's side of ``learner.mode=async``: it starts the learner process, sends each step and the new
@@ -269,6 +278,7 @@ class AsyncLearner:
         self.updates, self.last_losses = updates, last_losses  # the run's history's: kept across a resume
         self.budget = SimpleNamespace(skipped=0)
         self.stats = LagStats()
+        self.window = LagStats()  # since the last progress.csv row
         self.achieved_at_end: dict | None = None
         self._pending_examples: list = []
         self._probe_callbacks: list = []  # the diagnostics rows waiting for the learner's probe, in order
@@ -304,7 +314,7 @@ class AsyncLearner:
         self._drain_outbox()
         if halted and self.max_lag > 0:
             self._check_alive()
-            self.stats.add(self.sent - self.processed, self.sent - self.loaded, self._depth())
+            self._sample()
             return
         if self.max_lag == 0:
             self._wait_until(self.sent, "lockstep")
@@ -313,12 +323,13 @@ class AsyncLearner:
             if self.robot is not None:  # the arm held still while the actor waits: no overrun
                 self.robot.hold()
             self._wait_until(self.sent - self.max_lag, "the lag to come back within learner.max_lag")
-            self.stats.waits += 1
-            self.stats.wait_seconds += time.monotonic() - started
+            for stats in (self.stats, self.window):
+                stats.waits += 1
+                stats.wait_seconds += time.monotonic() - started
         self._check_alive()
         if int(self.weights.version.value) > self.loaded:
             self._load()
-        self.stats.add(self.sent - self.processed, self.sent - self.loaded, self._depth())
+        self._sample()
 
     def request_probe(self, callback) -> None:
         """``diagnostics.csv``'s probe at this step, computed by the learner on its buffers as they stand after
@@ -357,7 +368,18 @@ class AsyncLearner:
         return {"mode": "async", "max_lag": self.max_lag, **self.stats.summary(),
                 "updates_achieved_when_acting_ended": self.achieved_at_end}
 
+    def take_window(self) -> dict:
+        """The learner columns of ``progress.csv`` since the last call (:data:`~.learner.LEARNER_FIELDS`); a new
+        window starts."""
+        fields, self.window = self.window.fields(), LagStats()
+        return fields
+
     # -- internals --------------------------------------------------------------------------------
+    def _sample(self) -> None:
+        lag, age, depth = self.sent - self.processed, self.sent - self.loaded, self._depth()
+        self.stats.add(lag, age, depth)
+        self.window.add(lag, age, depth)
+
     def _depth(self) -> int:
         try:
             return int(self.inbox.qsize())

@@ -18,7 +18,7 @@ from torchrl_reset_recipes.training.task_envs import UpdateBudget
 from torchrl_reset import DualCollector
 from torchrl_reset.accel import matmul_products
 
-__all__ = ["make_collector", "Learner", "NonFiniteLoss", "updates_achieved"]
+__all__ = ["make_collector", "Learner", "NonFiniteLoss", "updates_achieved", "LEARNER_FIELDS", "learner_fields"]
 
 
 def make_collector(spec: RunSpec, env, forward: Agent, reset: Agent) -> DualCollector:
@@ -49,6 +49,20 @@ def event_keys(env) -> list[str]:
 def restart_option(spec: RunSpec) -> dict:
     """The collector's ``restart_exploration`` from ``exploration.restart`` (configs without it: ``episode``)."""
     return {} if spec["exploration.restart"] == "episode" else {"restart_exploration": False}
+
+
+#: ``progress.csv``'s learner columns, over each log window: the lag (steps sent, not yet learnt from), the age of the
+#: weights in use (steps), the queue's deepest and the seconds the actor waited at episode boundaries; all 0 in sync
+LEARNER_FIELDS = ("learner_lag_mean", "learner_lag_max", "weight_age_mean", "queue_depth_max", "boundary_wait_seconds")
+
+
+def learner_fields(learner) -> dict:
+    """The learner columns of a ``progress.csv`` row since the last: the async learner's window, else zeros."""
+    window = getattr(learner, "take_window", None)
+    if window is not None:
+        return window()
+    return {"learner_lag_mean": 0.0, "learner_lag_max": 0, "weight_age_mean": 0.0, "queue_depth_max": 0,
+            "boundary_wait_seconds": 0.0}  # one process: never behind, the weights always the newest
 
 
 def updates_achieved(updates: dict, counters: dict, heat_up: int) -> dict[str, float | None]:

@@ -22,6 +22,7 @@ from tqdm import tqdm
 from torchrl_reset_recipes.training.buffers import fallback_count, restore_fallback_count
 from torchrl_reset_recipes.training.run_spec import RunSpec
 from torchrl_reset_recipes.training.agents import reset_head
+from torchrl_reset_recipes.training.learner import LEARNER_FIELDS, learner_fields
 from torchrl_reset_recipes.training.diagnostics import DIAGNOSTIC_FIELDS, RESET_FIELDS, ResetDistances, TriggerScores, probe_classifier
 from torchrl_reset.actor_heads import TanhHead
 from torchrl_reset_recipes.training.run_folder import CsvTable, code_version, processor_name, reset_outcomes_by_quarter
@@ -45,6 +46,9 @@ PROGRESS_FIELDS = [
     # on a real-time robot: steps called after the control period ended (so far), and each agent's updates as a
     # fraction of Algorithm 1's count (one per step of its phase past heat-up)
     "overruns", "forward_updates_achieved", "reset_updates_achieved",
+    # learner.mode=async, over the log window: the learner's lag and the weights' age (steps), the queue's deepest,
+    # the seconds waited at episode boundaries (all 0 in sync)
+    *LEARNER_FIELDS,
 ]
 EVAL_FIELDS = ["frames", "forward_return", "forward_steps", "triggered", "reset_success", "reset_steps"]
 TRIGGER_FIELDS = ["frames", "steps", "value", "irrecoverable", "at_initial_state", "observation"]
@@ -201,6 +205,7 @@ class RunRecord:
             "overruns": getattr(realtime_env(env), "overruns", 0),
             **{f"{phase}_updates_achieved": float("nan") if value is None else value
                for phase, value in learner.updates_achieved().items()},
+            **learner_fields(learner),
         }
         self.last_window = Saturation.fields(self.window)
         self.window = self.history["saturation_window"] = Saturation.empty()
