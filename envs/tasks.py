@@ -112,10 +112,10 @@ TASKS: dict[str, TaskSpec] = {
         # the arm: H_f = 4 s at 25 Hz; on the real arm: train.py task=ur3_peg env.backend=rtde env.host=<address>
         # (read "Before the first run on hardware" in docs/ur3.md first)
         TaskSpec("ur3_peg", None, UR3Env, {"task": "peg"}, 100, 0.1, reconstructed=True, title="UR3 peg",
-                 total_steps=100_000, curriculum=(0, "cos(base joint angle)"), recipe_env=UR3_RECIPE_ENV),
+                 total_steps=100_000, curriculum=(0, "cos(base joint angle)"), recipe_env=dict(UR3_RECIPE_ENV)),
         TaskSpec("ur3_reacher", None, UR3Env, {"task": "reacher"}, 100, 0.1, True, reconstructed=True,
                  title="UR3 reacher", total_steps=100_000, curriculum=(0, "cos(base joint angle)"),
-                 recipe_env=UR3_RECIPE_ENV),
+                 recipe_env=dict(UR3_RECIPE_ENV)),
     )
 }
 

@@ -110,7 +110,8 @@ class RTDEBackend(UR3Backend):
         self._closed = False
         self._lock = threading.RLock()  # ur_rtde calls from the step and from the watchdog thread
         self._last_command = None
-        self._stop_failure_logged_for = None  # the last command whose following stall logged a failed speedStop
+        self._stop_failure_logged_for = None
+        self._stop_problem = ""  # why the last speedStop did not go through  # the last command whose following stall logged a failed speedStop
         self._watchdog_stopped = False
         self._watchdog_thread = None
         self._watchdog_quit = threading.Event()
@@ -155,18 +156,23 @@ class RTDEBackend(UR3Backend):
             self._safe_stop()
             raise RobotFault(f"ur_rtde {what} returned False: the command was refused (robot stopped or script not running).")
 
-    def _safe_stop(self) -> bool:
-        """``speedStop``, best-effort: False (logged) when the controller refuses it or the call fails."""
+    def _safe_stop(self, quiet: bool = False) -> bool:
+        """``speedStop``, best-effort: False when the controller refuses it or the call fails, logged unless
+        ``quiet`` (the host watchdog, which retries every check, says it once); ``_stop_problem`` says which."""
         try:
             with self._lock:
                 if self.control is None:
                     return False
                 ok = bool(self.control.speedStop(10.0))
         except Exception as err:  # stopping must never raise on the way out
-            log.error("speedStop failed: %r", err)
+            self._stop_problem = f"failed: {err!r}"
+            if not quiet:
+                log.error("speedStop %s", self._stop_problem)
             return False
         if not ok:
-            log.warning("speedStop refused by the controller (it refuses every command during a protective stop).")
+            self._stop_problem = "refused by the controller (it refuses every command during a protective stop)"
+            if not quiet:
+                log.warning("speedStop %s.", self._stop_problem)
         return ok
 
     # --------------------------------------------------------------- host watchdog
@@ -196,14 +202,14 @@ class RTDEBackend(UR3Backend):
             if self._watchdog_stopped or self._clock() - self._last_command <= self.watchdog_timeout():
                 return False
             idle = self._clock() - self._last_command
-            if not self._safe_stop():
+            if not self._safe_stop(quiet=True):
                 # not stopped: try again at the next check, and never feed the controller's watchdog,
                 # which then stops the control script itself; said once per stretch without commands (a
                 # protectively stopped controller refuses speedStop for as long as the stop lasts)
                 if self._stop_failure_logged_for != self._last_command:
                     self._stop_failure_logged_for = self._last_command
-                    log.error("UR3: no command for %.0f ms and speedStop failed (retried every check, said once "
-                              "until the next command).", 1000 * idle)
+                    log.error("UR3: no command for %.0f ms and speedStop %s (retried every check, said once "
+                              "until the next command).", 1000 * idle, self._stop_problem)
                 return False
             self._watchdog_stopped = True
             self.watchdog_stops += 1

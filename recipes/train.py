@@ -181,10 +181,8 @@ def main() -> None:
         # beside the command line's overrides: Hydra reads them as one run of arguments among its options
         at = max((i + 1 for i, a in enumerate(args) if "=" in a and not a.startswith("-")), default=len(args))
         sys.argv = [sys.argv[0], *args[:at], *extra, *args[at:]]
+    register_task_configs()  # the group task=<name>, from the task registry as it stands now (envs/tasks.py TASKS)
     run_command()
-
-
-register_task_configs()  # the group task=<name>, from the task registry (envs/tasks.py TASKS)
 
 
 @hydra.main(version_base="1.3", config_path="conf", config_name="config")

@@ -55,7 +55,7 @@ def test_a_lagging_learner_still_makes_every_update_algorithm_1_owes(tmp_path):
     table = rows(tmp_path / "progress.csv")
     lag_mean, lag_max, age = ([float(r[k]) for r in table] for k in ("learner_lag_mean", "learner_lag_max",
                                                                      "weight_age_mean"))
-    assert all(0 <= m <= x for m, x in zip(lag_mean, lag_max)) and min(age) >= 0
+    assert all(0 <= m <= x for m, x in zip(lag_mean, lag_max)) and min(age) >= 0 and max(lag_max) > 0
     assert max(lag_max) == stats["lag_steps"]["max"]
 
 
@@ -133,19 +133,21 @@ def fake_arm(monkeypatch):
 
 def test_on_the_arm_a_protective_stop_while_the_learner_is_busy_is_handled_by_the_actor_alone(tmp_path, monkeypatch,
                                                                                               fake_arm):
-    """The stop ends the episode at once; the actor neither waits for the learner nor loads weights until the arm is
-    unlocked and home (every load happens with the controller out of its protective stop); then training goes on
-    and every owed update is made."""
-    events = []  # ("stop", home moves so far) at the stop; ("halted", lag, moves) when the actor learns of it; ...
+    """The stop ends the episode at once; from the stop until the arm is unlocked and home the actor neither waits for
+    the learner nor loads weights (the collector's manual reset comes before the actor's next call to the learner);
+    then training goes on and every owed update is made."""
+    events = []  # ("stop", home moves so far, lag) at the stop; ("halted", _, moves) when the actor learns of it; ...
     send, load, wait_until, after_step = (AsyncLearner.send, AsyncLearner._load, AsyncLearner._wait_until,
                                           AsyncLearner.after_step)
 
     def busy_then_stop(self, batch, phase):
         send(self, batch, phase)
-        if self.sent == 60:  # past heat-up: the learner sleeps 1 s on its next message, and the arm stops
-            self.inbox.put(("hang", 1.0))
+        if self.sent == 50:  # past heat-up: the learner sleeps 1.5 s on its next message ...
+            self.inbox.put(("hang", 1.5))
+        if self.sent == 60:  # ... and while it is busy the arm stops
             fake_arm.protective_stop()
-            events.append(("stop", fake_arm.names().count("moveJ")))
+            self._drain_outbox()  # the learner's progress as it stands
+            events.append(("stop", fake_arm.names().count("moveJ"), self.sent - self.processed))
 
     def recorded_load(self):
         events.append(("load", fake_arm.names().count("moveJ"), fake_arm.safety_mode, fake_arm.program_running))
@@ -157,27 +159,27 @@ def test_on_the_arm_a_protective_stop_while_the_learner_is_busy_is_handled_by_th
 
     def recorded_after_step(self, episode_ended, halted=False):
         if halted:
-            events.append(("halted", self.sent - self.processed, fake_arm.names().count("moveJ")))
+            events.append(("halted", None, fake_arm.names().count("moveJ")))
         after_step(self, episode_ended, halted)
 
     for name, method in (("send", busy_then_stop), ("_load", recorded_load), ("_wait_until", recorded_wait),
                          ("after_step", recorded_after_step)):
         monkeypatch.setattr(AsyncLearner, name, method)
-    cfg = quick_config(tmp_path, "learner.streams=separate", "learner.mode=async", "learner.max_lag=50",
+    cfg = quick_config(tmp_path, "learner.streams=separate", "learner.mode=async", "learner.max_lag=5",
                        "task=ur3_peg", "task.forward_horizon=20", "env.backend=rtde", "env.host=ur3.fake",
                        "total_steps=120")
     summary = train.train(cfg)
     assert summary["finished"] and summary["steps"] == 120
     assert summary["protective_stops"] == 1 and fake_arm.protective_stops == 1
     stop = next(i for i, e in enumerate(events) if e[0] == "stop")
+    _, moves_at_stop, lag_at_stop = events[stop]
+    assert lag_at_stop >= 5  # the learner was busy, steps behind the actor, when the arm stopped
     halts = [i for i, e in enumerate(events) if e[0] == "halted"]
     assert len(halts) == 1 and halts[0] > stop
-    moves_at_stop = events[stop][1]
-    _, lag, moves_at_halt = events[halts[0]]
-    assert lag >= 1  # the learner was busy (behind the actor) when the actor learnt of the stop
-    assert moves_at_halt > moves_at_stop  # the collector's manual reset (unlock, home) came before any learner call
-    assert all(e[0] != "wait" for e in events[stop:halts[0]])  # the actor never waited on the learner meanwhile
-    _, moves, mode, running = next(e for e in events[halts[0]:] if e[0] == "load")
+    assert events[halts[0]][2] > moves_at_stop  # the collector's manual reset (unlock, home) came first
+    first_load = next(i for i in range(stop, len(events)) if events[i][0] == "load")
+    assert all(e[0] != "wait" for e in events[stop:first_load])  # the actor never waited on the learner meanwhile
+    _, moves, mode, running = events[first_load]
     assert moves > moves_at_stop and mode != PROTECTIVE_STOP and running  # the next weights: unlocked and home
     assert summary["updates_achieved"]["reset"] == 1.0  # late, but kept (the forward agent may still be heating up)
     assert summary["updates_achieved"]["forward"] in (None, 1.0)

@@ -518,8 +518,8 @@ def test_a_protective_stop_that_refuses_speedstop_is_logged_once_per_stretch_wit
     """The watchdog thread checks every 10 ms; a protectively stopped controller refuses speedStop for the
     whole stop (5 s at least before an unlock): one error line, not 500. A new stretch after a command says it anew."""
     backend, robot, clock = rtde
-    failures = lambda: sum("speedStop failed" in r.getMessage() for r in caplog.records)  # noqa: E731
-    with caplog.at_level("ERROR", logger="torchrl_reset_envs"):
+    failures = lambda: sum("speedStop" in r.getMessage() for r in caplog.records)  # noqa: E731
+    with caplog.at_level("DEBUG", logger="torchrl_reset_envs"):
         for stretch in (1, 2):
             backend.speedj(np.full(6, 0.02))
             robot.protective_stop()

@@ -1,7 +1,8 @@
 """What a configuration without a key runs with: one table for the training code and the report.
 
-Today's values live in one place, the configuration (``conf/`` and the task registry); this module holds
-only what the *absence* of a key means, which is history, not a second copy of the defaults:
+Today's values are set by the configuration (``conf/`` and the task registry); this module holds what the
+*absence* of a key means, which is history: for some keys it is today's value too (``FALLBACKS``), for others
+the behaviour before the key existed (``ABSENT_KEYS``):
 
 - :data:`ABSENT_KEYS`: the keys that changed what a run computes when they arrived (those that made the recipe
   follow the authors' release, commit ``d7b4986``, and later ones), each with the behaviour before it. A run whose

@@ -98,7 +98,7 @@ class SharedWeights:
                     raise LearnerFailed(f"the learner's {name} has entries {sorted(set(state) ^ set(self.tensors[name]))} "
                                         "that the actor's layout does not: refused")
                 for key, value in state.items():
-                    if "prior" not in key:  # fixed: shared once, by the actor
+                    if not (name == "reset_model" and "prior" in key):  # fixed priors: shared once, by the actor
                         self.tensors[name][key].copy_(value)
             self.version.value = version
 

@@ -270,6 +270,6 @@ def unknown_settings(cfg: DictConfig, conf: Path = CONF) -> list[str]:
             continue
         close = difflib.get_close_matches(path, sorted(keys), n=1, cutoff=0.6)
         hint = f"; the closest known key is {close[0]} (set it without a leading +: {close[0]}=...)" if close else ""
-        lines.append(f"unknown key {path}: the recipe's configuration (recipes/conf) does not define it, so "
+        lines.append(f"unknown key {path}: the recipe's configuration (recipes/conf and the task registry) does not define it, so "
                      f"nothing would read it{hint}")
     return lines
