@@ -144,10 +144,6 @@ def test_on_the_arm_a_protective_stop_while_the_learner_is_busy_is_handled_by_th
         send(self, batch, phase)
         if self.sent == 50:  # past heat-up: the learner sleeps 1.5 s on its next message ...
             self.inbox.put(("hang", 1.5))
-        if self.sent == 60:  # ... and while it is busy the arm stops
-            fake_arm.protective_stop()
-            self._drain_outbox()  # the learner's progress as it stands
-            events.append(("stop", fake_arm.names().count("moveJ"), self.sent - self.processed))
 
     def recorded_load(self):
         events.append(("load", fake_arm.names().count("moveJ"), fake_arm.safety_mode, fake_arm.program_running))
@@ -161,6 +157,10 @@ def test_on_the_arm_a_protective_stop_while_the_learner_is_busy_is_handled_by_th
         if halted:
             events.append(("halted", None, fake_arm.names().count("moveJ")))
         after_step(self, episode_ended, halted)
+        if self.sent == 60:  # ... and while it is busy the arm stops, between two steps (the next one sees it)
+            fake_arm.protective_stop()
+            self._drain_outbox()  # the learner's progress as it stands
+            events.append(("stop", fake_arm.names().count("moveJ"), self.sent - self.processed))
 
     for name, method in (("send", busy_then_stop), ("_load", recorded_load), ("_wait_until", recorded_wait),
                          ("after_step", recorded_after_step)):
