@@ -238,12 +238,15 @@ class UR3Env(EnvBase):
             raise ValueError(f"UR3Env got a non-finite action (NaN or inf): {qd.tolist()}.")
         qd = np.clip(qd, -self.speed_limit, self.speed_limit)
         target = self._deadline + self.period
-        now = self.backend.now()
+        now = self.backend.now()  # the trainer is back
+        # the arm followed its last command meanwhile; the wall-clock twin simulates that span now, before the new
+        # command, and the time it takes is the twin's, not the trainer's: a fresh period starts after it
+        self.backend.idle()
         if self._held:  # after a deliberate hold the period starts afresh: no overrun, no period measured
-            self._held, self._last_command, target = False, None, now + self.period
+            self._held, self._last_command, target = False, None, self.backend.now() + self.period
         elif now > target:
             self._overrun(now - self._deadline)
-            target = now + self.period
+            target = self.backend.now() + self.period
         sent = self.backend.now()
         if self._last_command is not None:
             self._record_period(sent - self._last_command)
@@ -279,9 +282,15 @@ class UR3Env(EnvBase):
 
     def hold(self) -> None:
         """Stops the arm for a deliberate pause between steps (the trainer waiting at an episode boundary for its
-        learner): the next step starts a fresh period, not an overrun."""
+        learner, an evaluation, a checkpoint): the next step starts a fresh period, not an overrun. Call
+        :meth:`idle` now and then during a long pause (the wall-clock twin then simulates the stopped arm as the
+        pause goes, not all at once before the next command)."""
         self.backend.stop()
         self._held = True
+
+    def idle(self) -> None:
+        """Brings the arm up to the present while the trainer is away (see :meth:`UR3Backend.idle`)."""
+        self.backend.idle()
 
     def _record_period(self, seconds: float) -> None:
         # a period exactly on a bin's edge (40 ms) goes to the bin it starts, whatever the float rounding

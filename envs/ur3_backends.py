@@ -92,6 +92,11 @@ class UR3Backend(abc.ABC):
     def wait_until(self, t: float) -> None:
         """Let the arm run until ``now() >= t``."""
 
+    def idle(self) -> None:
+        """Brings the arm up to the present while the trainer is away from it (busy, or waiting with the arm
+        held): a real arm and a simulated-time twin have nothing to do; the wall-clock twin runs its physics over
+        the time that passed, under the command the arm was following."""
+
 
 # ---------------------------------------------------------------------------------------------- sim
 class SimBackend(UR3Backend):
@@ -217,10 +222,12 @@ class SimRealtimeBackend(SimBackend):
 
     ``now()`` is a monotonic clock (seconds since ``connect``), so :class:`~torchrl_reset_envs.UR3Env` paces its
     steps at the control period on it and counts an overrun whenever the trainer comes back late, exactly as
-    on the real backend (``realtime = True``: the recipe's update budget applies). ``wait_until(t)`` first runs
-    the twin's physics over the wall-clock span since the last call (the arm keeps executing its last command
-    while the trainer is busy, however long that takes), then sleeps until ``t``. A manual reset or a restored
-    simulator state starts the span again from now.
+    on the real backend (``realtime = True``: the recipe's update budget applies). The physics runs on the same
+    clock: :meth:`idle` runs it over the wall-clock time since the last call under the command the arm was
+    following (the arm keeps executing its last command while the trainer is busy, however long that takes;
+    :class:`~torchrl_reset_envs.UR3Env` calls it before each new command and a waiting trainer calls it while it
+    waits), and ``wait_until(t)`` runs it up to ``t``, then sleeps until ``t``. A manual reset or a restored
+    simulator state ties the physics' time to the clock afresh.
 
     Args:
         clock, sleep: the monotonic clock and the sleep (tests pass a fake pair); other arguments as
@@ -233,31 +240,42 @@ class SimRealtimeBackend(SimBackend):
         super().__init__(*args, **kwargs)
         self._clock, self._sleep = clock, sleep
         self._origin = None
-        self._simulated_to = 0.0  # the wall-clock time (since connect) the physics has been run to
+        self._offset = 0.0  # the physics' time minus the clock's: the physics has run up to clock time t when
+        # its time reads t + offset (to its 2 ms step, without drift however often it is brought up to date)
 
     def connect(self) -> None:
         if self._origin is None:
             self._origin = self._clock()
         super().connect()
-        self._simulated_to = self.now()
+        self._tie_clock()
 
     def now(self) -> float:
         return self._clock() - self._origin
 
+    def _tie_clock(self) -> None:
+        self._offset = float(self.data.time) - self.now()
+
     def restore_home(self, q_home: np.ndarray) -> None:
         super().restore_home(q_home)
         if self._origin is not None:
-            self._simulated_to = self.now()
+            self._tie_clock()
 
     def set_simulator_state(self, state: dict) -> None:
         super().set_simulator_state(state)
-        self._simulated_to = self.now()
+        self._tie_clock()
+
+    def _run_to(self, t: float) -> None:
+        SimBackend.wait_until(self, t + self._offset)  # nothing when the physics is there already
+
+    def idle(self) -> None:
+        self._run_to(self.now())
+
+    def stop(self) -> None:
+        self.idle()  # the arm ran its last command up to the stop
+        super().stop()
 
     def wait_until(self, t: float) -> None:
-        span = t - self._simulated_to  # the wall-clock time the arm runs, the trainer's busy time included
-        if span > 0:
-            super().wait_until(float(self.data.time) + span)
-            self._simulated_to = t
+        self._run_to(t)
         remaining = t - self.now()
         if remaining > 0:
             self._sleep(remaining)

@@ -317,9 +317,14 @@ class RTDEBackend(UR3Backend):
         return safe
 
     def stop(self) -> None:
-        """``speedStop``, best-effort (see :meth:`_safe_stop`)."""
-        self._safe_stop()
-        self._last_command = self._clock()
+        """``speedStop``, best-effort (see :meth:`_safe_stop`). Once the arm is stopped this way the host watchdog
+        has nothing to stop: it only feeds the controller's watchdog until the next command (a deliberate pause,
+        :meth:`UR3Env.hold`, is no stall)."""
+        stopped = self._safe_stop()
+        with self._lock:
+            self._last_command = self._clock()
+            if stopped:
+                self._watchdog_stopped = True
 
     def recover(self) -> bool:
         """Bring a halted robot back to running; True when it runs in normal or reduced mode again.

@@ -134,3 +134,93 @@ def test_a_simulated_time_run_makes_every_update_algorithm_1_owes(tmp_path):
     with open(tmp_path / "progress.csv", newline="") as f:
         last = list(csv.DictReader(f))[-1]
     assert float(last["forward_updates_achieved"]) == 1.0 and float(last["reset_updates_achieved"]) == 1.0
+
+
+def joint0(env: UR3Env) -> float:
+    return float(env.backend.read_state().q[0])
+
+
+def test_a_late_trainer_leaves_the_arm_on_its_last_command_and_the_new_one_starts_when_sent():
+    """1 s late: the arm ran at its last command (0.1 rad/s on joint 0) the whole second; the new command (stop)
+    acts only from when it is sent. By hand (speedj ramps at 1.4 rad/s^2, 0.1 rad/s reached after 71 ms): over
+    the late second 0.1 rad, then within the 40 ms period the ramp down from 0.1: 0.1 * 0.04 - 1.4 * 0.04^2 / 2
+    = 2.9 mrad. Run under the new command, the second would have moved it 0.1^2 / (2 * 1.4) = 3.6 mrad in all."""
+    clock = FakeClock()
+    env = twin(clock)
+    td = env.reset()
+    for _ in range(5):  # 200 ms at 0.1 rad/s: the arm at the commanded speed
+        td = env.step(td.set("action", torch.tensor([0.1, 0, 0, 0, 0, 0])))["next"].select("observation")
+    before = joint0(env)
+    clock.advance(1.0)
+    env.step(td.set("action", torch.zeros(6)))
+    assert env.overruns == 1
+    assert joint0(env) - before == pytest.approx(0.1 + 0.0029, abs=0.002)
+
+
+def test_after_a_hold_the_arm_rests_through_the_pause_and_the_next_command_acts_for_one_period():
+    """Held for 5 s (the trainer waiting for its learner, idling now and then): the arm stops and stays; the next
+    command (0.1 rad/s) then moves joint 0 by its ramp over one period, 1.4 * 0.04^2 / 2 = 1.1 mrad at most,
+    not 5 s worth of it (0.5 rad)."""
+    clock = FakeClock()
+    env = twin(clock)
+    td = env.reset()
+    td = env.step(td.set("action", torch.tensor([0.3, 0, 0, 0, 0, 0])))["next"].select("observation")
+    env.hold()
+    sim_at_hold = float(env.backend.data.time)
+    for _ in range(100):
+        clock.advance(0.05)
+        env.idle()
+    at_rest = joint0(env)
+    assert float(env.backend.data.time) - sim_at_hold == pytest.approx(5.0, abs=0.002)  # the pause, simulated
+    assert np.allclose(env.backend.read_state().qd, 0.0, atol=1e-3)
+    sim_before = float(env.backend.data.time)
+    env.step(td.set("action", torch.tensor([0.1, 0, 0, 0, 0, 0])))
+    assert float(env.backend.data.time) - sim_before == pytest.approx(PERIOD, abs=0.002)
+    assert 0.0 < joint0(env) - at_rest <= 0.00112 + 1e-4
+    assert env.overruns == 0 and env.time_left() == pytest.approx(PERIOD)
+
+
+def test_a_waiting_actor_keeps_the_arm_up_to_date():
+    """While the async actor waits for its learner, it brings the robot up to the present at each poll."""
+    import queue
+    import threading
+    from types import SimpleNamespace
+
+    from torchrl_reset_recipes.training.async_learner import AsyncLearner
+
+    idles = []
+    actor = object.__new__(AsyncLearner)
+    actor.robot = SimpleNamespace(idle=lambda: idles.append(time.monotonic()))
+    actor.outbox, actor.processed, actor.timeout = queue.Queue(), 0, 10.0
+    actor.updates, actor.last_losses, actor._probe_callbacks = {}, {}, []
+    actor.process = SimpleNamespace(is_alive=lambda: True)
+    threading.Timer(0.5, actor.outbox.put, args=(("progress", 3, {}, {}),)).start()
+    actor._wait_until(3, "a test")
+    assert actor.processed == 3
+    assert len(idles) >= 2  # polled every 50 ms for 0.5 s: about 10, a loaded machine fewer
+
+
+def test_on_a_real_time_arm_the_run_holds_the_arm_before_each_evaluation_and_checkpoint():
+    """Both take longer than a control period: the arm is held first (evaluations every 10 steps, checkpoints
+    every 25: holds at 10, 20, 25 and 30, each just before what it covers, and nowhere else)."""
+    from types import SimpleNamespace
+
+    from torchrl_reset_recipes.training.single_run import TrainingRun
+
+    events = []
+    run = SimpleNamespace(
+        cfg=SimpleNamespace(eval_every=10, log_every=1000, checkpoint_every=25),
+        collector=SimpleNamespace(frames=0),
+        record=SimpleNamespace(step=lambda batch, phase: None, evaluation=lambda result: None,
+                               log=lambda learner, env: None),
+        robot=SimpleNamespace(hold=lambda: events.append(("hold", run.collector.frames))),
+        evaluation=lambda: events.append(("evaluation", run.collector.frames)),
+        checkpoint=lambda: events.append(("checkpoint", run.collector.frames)),
+        learner=None, env=None,
+    )
+    batch = torch.zeros(1)
+    for _ in range(30):
+        run.collector.frames += 1
+        TrainingRun.after_step(run, batch, "forward")
+    assert events == [("hold", 10), ("evaluation", 10), ("hold", 20), ("evaluation", 20), ("hold", 25),
+                      ("checkpoint", 25), ("hold", 30), ("evaluation", 30)]

@@ -514,6 +514,24 @@ def test_host_watchdog_that_cannot_stop_the_arm_never_feeds_the_controller_watch
     assert backend.watchdog_stops == 1 and robot.program_running and robot.watchdog_trips == 1
 
 
+def test_a_deliberate_hold_is_no_stall_the_watchdog_keeps_the_script_alive_through_it(rtde):
+    """UR3Env.hold() (the trainer pausing for its learner, an evaluation, a checkpoint): the arm stopped by the
+    trainer is not stopped again by the host watchdog nor counted as a stall; the controller's watchdog is fed, so
+    after 2 s (ten times its 0.2 s) the script still runs and the next command goes through."""
+    backend, robot, clock = rtde
+    backend.speedj(np.full(6, 0.02))
+    backend.stop()
+    assert robot.log[-1][1:] == ("speedStop", True)
+    for _ in range(200):  # 2 s of checks, every 10 ms as the watchdog thread does
+        clock.t += 0.01
+        assert not backend.check_watchdog()
+    assert backend.watchdog_stops == 0 and robot.names().count("speedStop") == 1
+    assert robot.watchdog_trips == 0 and robot.program_running
+    assert not backend.read_state().halted
+    backend.speedj(np.full(6, 0.02))
+    assert robot.log[-2][1:] == ("speedJ", True)
+
+
 def test_a_protective_stop_that_refuses_speedstop_is_logged_once_per_stretch_without_commands(rtde, caplog):
     """The watchdog thread checks every 10 ms; a protectively stopped controller refuses speedStop for the
     whole stop (5 s at least before an unlock): one error line, not 500. A new stretch after a command says it anew."""

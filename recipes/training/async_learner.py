@@ -419,6 +419,7 @@ class AsyncLearner:
                 message = self.outbox.get(timeout=0.05)
             except queue_module.Empty:
                 self._check_alive()
+                self._idle()
                 if time.monotonic() > deadline:
                     raise LearnerFailed(f"no answer from the learner in {timeout:.0f} s while waiting for {waiting_for}")
                 continue
@@ -435,12 +436,17 @@ class AsyncLearner:
                 message = self.outbox.get(timeout=0.05)
             except queue_module.Empty:
                 self._check_alive()
+                self._idle()
                 if time.monotonic() - last_change > self.timeout:
                     raise LearnerFailed(f"the learner made no progress for {self.timeout:g} s while the actor waited "
                                         f"for {why} (processed {self.processed} of {self.sent} steps): hung")
                 continue
             self._handle(message)
             last_change = time.monotonic()
+
+    def _idle(self) -> None:
+        if self.robot is not None:  # the wall-clock twin simulates the (held) arm as the wait goes
+            self.robot.idle()
 
     def _check_alive(self) -> None:
         if not self.process.is_alive():

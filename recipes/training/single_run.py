@@ -97,11 +97,16 @@ class TrainingRun:
         def due(every) -> bool:
             return frames // int(every) > before // int(every)
 
-        if due(cfg.eval_every):
+        evaluate, checkpoint = due(cfg.eval_every), due(cfg.checkpoint_every)
+        if self.robot is not None and (evaluate or checkpoint):
+            # both take longer than a control period (a checkpoint waits for an async learner's debt): the arm is
+            # held meanwhile instead of running on its last command, and the next step starts a fresh period
+            self.robot.hold()
+        if evaluate:
             self.record.evaluation(self.evaluation())
         if due(cfg.log_every):
             self.record.log(self.learner, self.env)
-        if due(cfg.checkpoint_every):
+        if checkpoint:
             self.checkpoint()
 
     def checkpoint(self):
