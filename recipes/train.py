@@ -39,7 +39,7 @@ from torchrl_reset_recipes.training.learner import NonFiniteLoss
 from torchrl_reset_recipes.training.run_folder import RunFolderBusy, RunInterrupted, run_folder_lock, stop_on_signals
 from torchrl_reset_recipes.training.hydra_config import register_task_configs
 from torchrl_reset_recipes.training.run_spec import RunSpec, run_spec
-from torchrl_reset_recipes.training.single_run import RobotStopped, TrainingDiverged, build_run, set_up_process
+from torchrl_reset_recipes.training.single_run import RobotStopped, TrainingDiverged, build_run, set_up_frozen, set_up_process
 from torchrl_reset_recipes.training.updates import learn_step
 
 log = logging.getLogger("torchrl_reset.train")
@@ -62,7 +62,8 @@ def _train(cfg: DictConfig) -> dict:
     run = build_run(spec, set_up_process(spec))
     remote = start_async_learner(run) if spec["learner.mode"] == "async" else None  # the learner's own process
     try:
-        return _loop(cfg, run, remote)
+        with set_up_frozen(run.robot):  # on a real-time arm: no full garbage collection over the set-up's objects
+            return _loop(cfg, run, remote)
     except LearnerFailed as err:  # the learner process crashed or hung: the arm stops, the last checkpoint stands
         if run.robot is not None:
             run.robot.backend.stop()

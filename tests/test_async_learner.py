@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import copy
 import csv
+import gc
 import multiprocessing
 import sys
 import time
@@ -137,6 +138,7 @@ def test_on_the_arm_a_protective_stop_while_the_learner_is_busy_is_handled_by_th
     the learner nor loads weights (the collector's manual reset comes before the actor's next call to the learner);
     then training goes on and every owed update is made."""
     events = []  # ("stop", home moves so far, lag) at the stop; ("halted", _, moves) when the actor learns of it; ...
+    frozen = []  # the objects kept out of the garbage collector's passes, at each step (a real-time arm: the set-up's)
     send, load, wait_until, after_step = (AsyncLearner.send, AsyncLearner._load, AsyncLearner._wait_until,
                                           AsyncLearner.after_step)
 
@@ -154,6 +156,7 @@ def test_on_the_arm_a_protective_stop_while_the_learner_is_busy_is_handled_by_th
         wait_until(self, processed, why)
 
     def recorded_after_step(self, episode_ended, halted=False):
+        frozen.append(gc.get_freeze_count())
         if halted:
             events.append(("halted", None, fake_arm.names().count("moveJ")))
         after_step(self, episode_ended, halted)
@@ -182,6 +185,7 @@ def test_on_the_arm_a_protective_stop_while_the_learner_is_busy_is_handled_by_th
     _, moves, mode, running = events[first_load]
     assert moves > moves_at_stop and mode != PROTECTIVE_STOP and running  # the next weights: unlocked and home
     assert summary["updates_achieved"]["reset"] == 1.0  # late, but kept (the forward agent may still be heating up)
+    assert min(frozen) > 100_000 and gc.get_freeze_count() == 0  # frozen while acting, returned afterwards
     assert summary["updates_achieved"]["forward"] in (None, 1.0)
 
 

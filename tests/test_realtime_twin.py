@@ -224,3 +224,15 @@ def test_on_a_real_time_arm_the_run_holds_the_arm_before_each_evaluation_and_che
         TrainingRun.after_step(run, batch, "forward")
     assert events == [("hold", 10), ("evaluation", 10), ("hold", 20), ("evaluation", 20), ("hold", 25),
                       ("checkpoint", 25), ("hold", 30), ("evaluation", 30)]
+
+
+def test_only_a_real_time_arm_keeps_the_set_up_out_of_the_garbage_collector():
+    import gc
+
+    from torchrl_reset_recipes.training.single_run import set_up_frozen
+
+    with set_up_frozen(None):
+        assert gc.get_freeze_count() == 0
+    with set_up_frozen(object()):
+        assert gc.get_freeze_count() > 0
+    assert gc.get_freeze_count() == 0

@@ -992,12 +992,13 @@ def test_random_streams_are_independent_and_restore():
 def test_ctrl_c_stops_an_async_run_and_both_processes_checkpoint_and_the_lockstep_run_resumes_exactly(tmp_path):
     """learner.mode=async, lockstep: Ctrl-C reaches both processes; the learner ignores it, the actor checkpoints
     after its step with the learner's part (learner.pt) and exits 130; the printed command resumes the run, which
-    then equals the uninterrupted one, table for table."""
+    then equals the uninterrupted one, table for table (the uninterrupted one in one process: lockstep equals it,
+    tests/test_async_learner.py)."""
     import shlex
 
-    common = ["task=cliff_cheetah", "algo=ours", "total_steps=200", "learner.streams=separate", "learner.mode=async",
-              "learner.max_lag=0"]
+    common = ["task=cliff_cheetah", "algo=ours", "total_steps=200", "learner.streams=separate"]
     train.train(config(tmp_path / "whole", *common))
+    common += ["learner.mode=async", "learner.max_lag=0"]
     run_dir = tmp_path / "run"
     args = [sys.executable, str(RECIPES / "train.py"), *TINY, *common, f"run_dir={run_dir}"]
     progress = run_dir / "progress.csv"
