@@ -242,12 +242,12 @@ class UR3Env(EnvBase):
         # the arm followed its last command meanwhile; the wall-clock twin simulates that span now, before the new
         # command, and the time it takes is the twin's, not the trainer's: a fresh period starts after it
         self.backend.idle()
+        sent = self.backend.now()
         if self._held:  # after a deliberate hold the period starts afresh: no overrun, no period measured
-            self._held, self._last_command, target = False, None, self.backend.now() + self.period
+            self._held, self._last_command, target = False, None, sent + self.period
         elif now > target:
             self._overrun(now - self._deadline)
-            target = self.backend.now() + self.period
-        sent = self.backend.now()
+            target = sent + self.period
         if self._last_command is not None:
             self._record_period(sent - self._last_command)
         self._last_command = sent
