@@ -178,8 +178,12 @@ def test_on_the_arm_a_protective_stop_while_the_learner_is_busy_is_handled_by_th
     _, moves_at_stop, lag_at_stop = events[stop]
     assert lag_at_stop >= 5  # the learner was busy, steps behind the actor, when the arm stopped
     halts = [i for i, e in enumerate(events) if e[0] == "halted"]
-    assert len(halts) == 1 and halts[0] > stop
-    assert events[halts[0]][2] > moves_at_stop  # the collector's manual reset (unlock, home) came first
+    # On a loaded host a step can outlast the controller's watchdog, which stops the control script: that ends an
+    # episode too (as on an arm; a trip during a manual reset ends none). Every other halt is the stop's: on an idle
+    # host, exactly one.
+    assert 1 <= len(halts) <= 1 + fake_arm.watchdog_trips
+    after = [i for i in halts if i > stop]
+    assert after and events[after[0]][2] > moves_at_stop  # the collector's manual reset (unlock, home) came first
     first_load = next(i for i in range(stop, len(events)) if events[i][0] == "load")
     assert all(e[0] != "wait" for e in events[stop:first_load])  # the actor never waited on the learner meanwhile
     _, moves, mode, running = events[first_load]
