@@ -70,7 +70,7 @@ def train(cells_weights, num_states=7, steps=2500, batch=64, n_steps=1, seed=0):
 
 def test_classifiers_trained_under_a_fixed_reset_policy_approach_gamma_to_the_t():
     n = 7
-    p = train([0.0] + [1.0] * (n - 1), num_states=n, steps=1200)  # within 0.002 on seeds 0-2 at 1,200 updates
+    p = train([0.0] + [1.0] * (n - 1), num_states=n, steps=800)  # within 0.001 on seeds 0-6 at 800 updates
     expected = torch.tensor([GAMMA**k for k in range(n)])
     # every member, and their mean (what the trigger reads), within 0.01 of gamma ** T
     assert (p - expected.unsqueeze(-1)).abs().max() < 0.01, (p, expected)
@@ -82,7 +82,7 @@ def test_replay_transitions_from_the_initial_state_scale_the_fixed_point_by_one_
     n = 5
     q = 0.2  # share of replay rows at cell 0
     weights = [q] + [(1 - q) / (n - 1)] * (n - 1)
-    p = train(weights, num_states=n).mean(-1)
+    p = train(weights, num_states=n, steps=800, batch=256).mean(-1)  # within 0.011 on seeds 0-6
     w0 = 1.0 / (1.0 + 2.0 * q)
     expected = torch.tensor([w0 * GAMMA**k for k in range(n)])
     assert (p - expected).abs().max() < 0.02, (p, expected)
