@@ -5,7 +5,9 @@ The probes under ``results/*/probes/`` that used them answered decided questions
 271779f (results/README.md says how to run one there); they are not in the suite."""
 from __future__ import annotations
 
+import fcntl
 import math
+import os
 import shutil
 from dataclasses import dataclass
 from pathlib import Path
@@ -47,9 +49,21 @@ def _train(root: Path, task: str, algo: str, *overrides: str) -> Path:
 
 @pytest.fixture(scope="session")
 def runs(tmp_path_factory) -> Runs:
-    root = tmp_path_factory.mktemp("runs")
-    made = Runs(root, cliff=_train(root, "cliff_cheetah", "ours", "algo.threshold=0.5"),
-                peg=_train(root, "peg_insertion_insert", "lnt_sparse", "algo.num_members=3"))
+    """Made once per session: under ``pytest -n 2`` the first worker to ask trains them, the other waits on the lock
+    and reads the same folders (the session's temporary folder is shared by its workers)."""
+    shared = tmp_path_factory.getbasetemp()
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        shared = shared.parent
+    root = shared / "saved-runs"
+    with open(shared / "saved-runs.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        if (root / "made").exists():
+            made = Runs(root, cliff=root / "cliff_cheetah" / "ours" / "seed0",
+                        peg=root / "peg_insertion_insert" / "lnt_sparse" / "seed0")
+        else:
+            made = Runs(root, cliff=_train(root, "cliff_cheetah", "ours", "algo.threshold=0.5"),
+                        peg=_train(root, "peg_insertion_insert", "lnt_sparse", "algo.num_members=3"))
+            (root / "made").touch()
     for run in (made.cliff, made.peg):  # the trigger-state readers below need triggers
         if not run_table(run, "triggers.csv"):
             pytest.fail(f"{run} logged no trigger in {STEPS} steps: run_table's triggers.csv has nothing to read")
