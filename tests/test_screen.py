@@ -47,19 +47,23 @@ def test_the_interval_brackets_the_mean_and_needs_three_values():
     assert mean == 3.0 and math.isnan(low) and math.isnan(high)
 
 
-def _run(folder: Path, seed: int, manual: int, last: float | None, share: float, saturation: float):
+def _run(folder: Path, seed: int, manual: int, last: float | None, share: float, saturation: float,
+         forward_saturation: float | None = None):
     folder.mkdir(parents=True)
+    quarter = {"reset_saturation": saturation}
+    if forward_saturation is not None:  # runs before the forward actor's column have none
+        quarter["forward_saturation"] = forward_saturation
     (folder / "summary.json").write_text(json.dumps({
         "seed": seed, "steps": 1000, "finished": True, "manual_resets": manual, "episodic_resets": 50,
         "reset_success_rate_first_quarter": 0.25, "reset_success_rate_last_quarter": last, "forward_share": share,
-        "saturation": {"last_quarter": {"reset_saturation": saturation}}}))
+        "saturation": {"last_quarter": quarter}}))
     # evaluations at 500 and 1000 steps: only the one in the last quarter (> 750) counts
     (folder / "eval.csv").write_text("frames,forward_return\n500,9.0\n1000,3.0\n")
 
 
 def test_the_table_counts_the_seeds_that_hold_and_shows_every_seed(tmp_path):
     _run(tmp_path / "a" / "seed0", 0, 10, 0.5, 0.2, 0.1)  # holds: exactly 50%
-    _run(tmp_path / "a" / "seed1", 1, 30, 0.49, 0.1, 0.6)
+    _run(tmp_path / "a" / "seed1", 1, 30, 0.49, 0.1, 0.6, forward_saturation=0.9)
     _run(tmp_path / "a" / "seed2", 2, 20, None, 0.3, 0.2)  # no reset episode in its last quarter
     rows = screen.read_configuration(tmp_path / "a")
     assert [r["seed"] for r in rows] == [0, 1, 2]
@@ -68,7 +72,8 @@ def test_the_table_counts_the_seeds_that_hold_and_shows_every_seed(tmp_path):
     table = screen.screening_table({"a": rows})
     assert "| a | 3 (0,1,2) | 1 of 3 |" in table
     assert "| 20 [" in table  # mean manual resets (10 + 30 + 20) / 3 with its interval
-    assert "| a | 1 | 1000 | no | 30 | 50 | 25% | 49% | 10% | 3.00 | 60% |" in table
+    assert "| a | 1 | 1000 | no | 30 | 50 | 25% | 49% | 10% | 3.00 | 60% | 90% |" in table
+    assert "| a | 0 | 1000 | yes | 10 | 50 | 25% | 50% | 20% | 3.00 | 10% | n/a |" in table  # not logged: n/a
     fig = screen.screening_figure({"a": rows, "b": rows})
     assert len(fig.axes) == 4
     screen.main(["table", str(tmp_path), "--out", str(tmp_path / "out")])

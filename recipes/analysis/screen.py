@@ -13,7 +13,8 @@
 ``runs/screening``) with ``resume=auto``: a grid stopped part-way is continued by the same command. ``table``
 reads every ``<root>/<name>/seed*/`` that has a ``summary.json``: per seed the manual and episodic resets, the
 reset success in the first and in the last quarter, the forward share, the forward return (the mean of the
-last quarter's evaluations) and the reset actor's saturation in the last quarter; across seeds the mean with
+last quarter's evaluations) and each actor's saturation in the last quarter (the share of action components
+beyond +-0.99); across seeds the mean with
 a bootstrap 95% interval (``scipy.stats.bootstrap``, BCa, 10,000 resamples, fixed seed); and how many seeds
 hold (last-quarter reset success >= 50%).
 """
@@ -46,6 +47,7 @@ COLUMNS = [
     ("forward_share", "forward share", "share"),
     ("forward_return", "forward return, last quarter", "number"),
     ("reset_saturation", "reset actor saturation, last quarter", "share"),
+    ("forward_saturation", "forward actor saturation, last quarter", "share"),
 ]
 
 
@@ -117,6 +119,7 @@ def read_seed(folder: Path) -> dict:
         "forward_share": summary["forward_share"],
         "forward_return": float(np.mean(late)) if late else nan,
         "reset_saturation": _or_nan(saturation.get("reset_saturation")),
+        "forward_saturation": _or_nan(saturation.get("forward_saturation")),
     }
 
 
