@@ -186,6 +186,10 @@ def test_each_remedy_trains_and_every_run_logs_saturation(tmp_path, algo, remedy
     (["reset.actor.preact_penalty=-1"], "preact_penalty must be a number >= 0"),
     (["reset.actor.entropy=0"], "entropy must be a number > 0 or auto"),
     (["reset.actor.head=tanh_normal", "update_order=joint"], "needs update_order=release"),
+    (["forward.actor.head=sigmoid"], "forward.actor.head must be one of"),
+    (["forward.actor.action_l2=-0.5"], "forward.actor.action_l2 must be a number >= 0"),
+    (["forward.actor.head=tanh_normal", "reset_actor=release", "update_order=joint"],
+     "forward.actor.head=tanh_normal needs update_order=release .*the critic's TD targets"),
 ])
 def test_bad_actor_settings_are_refused(tmp_path, overrides, message):
     with pytest.raises(ConfigError, match=message):
@@ -205,3 +209,38 @@ def test_the_default_reset_actor_is_the_projects_and_the_paper_preset_restores_t
     assert (cfg.reset.actor.head, cfg.reset.actor.entropy) == (head, entropy)
     assert cfg.reset.actor.preact_penalty == 0.0 and cfg.reset.actor.action_l2 == 0.0
     assert list(cfg.hidden_sizes) == [400, 300]  # the paper's networks either way
+
+
+def test_the_forward_actor_is_the_papers_ddpg_by_default_and_takes_the_projects_head_when_asked(tmp_path):
+    """forward.actor.*: by default the deterministic tanh explored by OU noise (DDPGLoss, no temperature); with
+    tanh_normal the forward agent samples its own actions (no noise module), its loss has the entropy term, and its
+    learned temperature moves and is saved with the loss."""
+    from torchrl_reset_recipes.training.agents import make_forward_agent, with_exploration
+    from torchrl_reset_recipes.training.run_spec import run_spec
+    from torchrl_reset_recipes.training.task_envs import task_dimensions
+
+    cfg = _config(tmp_path / "default")
+    obs_dim, action_spec = task_dimensions(cfg)
+    spec = run_spec(cfg)
+    paper = make_forward_agent(spec, obs_dim, action_spec)
+    assert isinstance(paper.head, TanhHead) and not getattr(paper.loss, "stochastic", False)
+    assert len(with_exploration(paper.actor, action_spec, spec, paper.head)) == 2  # the actor, then OU noise
+    cfg = _config(tmp_path / "tanh_normal", "forward.actor.head=tanh_normal")
+    spec = run_spec(cfg)
+    project = make_forward_agent(spec, obs_dim, action_spec)
+    assert isinstance(project.head, TanhNormalHead) and project.loss.stochastic
+    assert with_exploration(project.actor, action_spec, spec, project.head) is project.actor  # its own samples
+    assert project.loss.temperature.learned and float(project.loss.temperature.log_alpha.detach()) == pytest.approx(math.log(0.01))
+    # the temperature is one of the optimizer's parameters, stepped at the critic's rate
+    lrs = {id(p): group["lr"] for group in project.optimizer.param_groups for p in group["params"]}
+    assert lrs[id(project.loss.temperature.log_alpha)] == cfg.forward.critic_lr
+
+    summary = train.train(cfg)
+    assert summary["finished"]
+    with open(tmp_path / "tanh_normal" / "progress.csv", newline="") as f:
+        last = list(csv.DictReader(f))[-1]
+    assert last["loss_forward_actor"] not in ("", "nan") and 0.0 <= float(last["forward_saturation"]) <= 1.0
+    assert int(last["forward_steps"]) > 41  # past the forward agent's heat-up of 40 steps: it updated
+    checkpoints = tmp_path / "tanh_normal" / "checkpoints"
+    state = torch.load(checkpoints / (checkpoints / "latest").read_text() / "state.pt", weights_only=False)
+    assert state["forward_loss"]["temperature.log_alpha"] != pytest.approx(math.log(0.01))

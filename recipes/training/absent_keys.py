@@ -36,6 +36,10 @@ ABSENT_KEYS = {
     "reset.actor.preact_penalty": 0.0,     # ... with nothing added to its loss
     "reset.actor.action_l2": 0.0,
     "reset.actor.entropy": 0.0001,         # (read by the tanh_normal head only: RCE's fixed coefficient)
+    "forward.actor.head": "tanh",          # the forward actor: the paper's DDPG (deterministic tanh head) ...
+    "forward.actor.preact_penalty": 0.0,   # ... with nothing added to its loss
+    "forward.actor.action_l2": 0.0,
+    "forward.actor.entropy": "auto",       # (read by the tanh_normal head only)
     "reset.learn_from_forward": False,     # the reset agent's buffer: reset transitions only (the paper's B_r)
     "learner.streams": "shared",           # one random stream for acting and learning
     "learner.mode": "sync",                # one process acts and learns

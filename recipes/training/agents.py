@@ -16,10 +16,11 @@ from torchrl.objectives import SoftUpdate
 
 from torchrl_reset import ResetTriggerTransform, accel
 from torchrl_reset.actor_heads import ActorHead, TanhHead, actor_head, head_from_settings
+from torchrl_reset.stochastic_actor import EntropyDDPGLoss
 
 from torchrl_reset_recipes.training.run_spec import RunSpec
 
-__all__ = ["speed_components", "make_actor", "reset_head", "with_exploration", "exploration_settings", "make_adam", "Agent", "make_forward_agent", "make_reset_agent", "make_trigger", "reset_tau"]
+__all__ = ["speed_components", "make_actor", "reset_head", "forward_head", "with_exploration", "exploration_settings", "make_adam", "Agent", "make_forward_agent", "make_reset_agent", "make_trigger", "reset_tau"]
 
 
 def speed_components(spec: RunSpec) -> accel.Components:
@@ -40,8 +41,18 @@ def make_actor(obs_dim: int, action_spec, hidden_sizes, parts: accel.Components 
 def reset_head(spec: RunSpec) -> ActorHead:
     """The reset actor's head from ``reset.actor.*``: its kind (``head``), its penalties and, for the
     tanh-Gaussian, its temperature (``entropy: auto``, learned from 0.01 towards -dim(A); a number, fixed)."""
-    settings = {key: spec[f"reset.actor.{key}"] for key in ("preact_penalty", "action_l2", "entropy")}
-    return head_from_settings(spec["reset.actor.head"], **settings)
+    return _head(spec, "reset")
+
+
+def forward_head(spec: RunSpec) -> ActorHead:
+    """The forward actor's head from ``forward.actor.*`` (default: the paper's deterministic tanh), read as
+    :func:`reset_head` reads ``reset.actor.*``."""
+    return _head(spec, "forward")
+
+
+def _head(spec: RunSpec, agent: str) -> ActorHead:
+    settings = {key: spec[f"{agent}.actor.{key}"] for key in ("preact_penalty", "action_l2", "entropy")}
+    return head_from_settings(spec[f"{agent}.actor.head"], **settings)
 
 
 def with_exploration(actor, action_spec, spec: RunSpec, head: ActorHead | None = None) -> TensorDictSequential:
@@ -91,23 +102,29 @@ class Agent:
 
 
 def make_forward_agent(spec: RunSpec, obs_dim: int, action_spec) -> Agent:
-    """DDPG (torchrl's ``DDPGLoss``) with the paper's critic layout (action joined after the first hidden layer)."""
-    cfg, parts = spec.cfg, speed_components(spec)
+    """DDPG (torchrl's ``DDPGLoss``) with the paper's critic layout (action joined after the first hidden layer);
+    with a stochastic head (``forward.actor.head: tanh_normal``) the same loss with the actor's entropy term and
+    its temperature (:class:`~torchrl_reset.stochastic_actor.EntropyDDPGLoss`)."""
+    cfg, parts, head = spec.cfg, speed_components(spec), forward_head(spec)
     act_dim = action_spec.shape[-1]
-    actor = make_actor(obs_dim, action_spec, cfg.hidden_sizes, parts)
+    actor = make_actor(obs_dim, action_spec, cfg.hidden_sizes, parts, head)
     critic = parts.ensemble(
         obs_dim, act_dim, num_members=1, hidden_sizes=tuple(cfg.hidden_sizes), prior_scale=0.0, out_keys=["state_action_value"]
     )
-    loss = parts.ddpg_loss(actor, critic, delay_actor=True, delay_value=True)
+    if head.stochastic:
+        loss = EntropyDDPGLoss(actor, critic, delay_actor=True, delay_value=True, **head.loss_kwargs())
+    else:
+        loss = parts.ddpg_loss(actor, critic, delay_actor=True, delay_value=True)
     loss.make_value_estimator(gamma=cfg.gamma)
-    optimizer = make_adam(spec, [
-        {"params": list(loss.actor_network_params.values(True, True)), "lr": cfg.forward.actor_lr},
-        {"params": list(loss.value_network_params.values(True, True)), "lr": cfg.forward.critic_lr},
-    ])
+    groups = [{"params": list(loss.actor_network_params.values(True, True)), "lr": cfg.forward.actor_lr},
+              {"params": list(loss.value_network_params.values(True, True)), "lr": cfg.forward.critic_lr}]
+    if getattr(loss, "temperature", None) is not None and loss.temperature.learned:  # at the critic's rate
+        groups.append({"params": [loss.temperature.log_alpha], "lr": cfg.forward.critic_lr})
+    optimizer = make_adam(spec, groups)
     targets = parts.soft_update(loss, tau=cfg.tau)  # building it copies the networks into their targets
     if spec["target_init"] == "release":  # the target actor starts as a network of its own; the target critic as a copy
-        draw_target(loss.target_actor_network_params, make_actor(obs_dim, action_spec, cfg.hidden_sizes, parts))
-    return Agent(actor, loss, optimizer, targets, critic)
+        draw_target(loss.target_actor_network_params, make_actor(obs_dim, action_spec, cfg.hidden_sizes, parts, head))
+    return Agent(actor, loss, optimizer, targets, critic, head=head)
 
 
 def make_reset_agent(spec: RunSpec, obs_dim: int, action_spec) -> Agent:

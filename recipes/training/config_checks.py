@@ -75,21 +75,23 @@ def learner_problems(cfg: DictConfig) -> list[str]:
 
 
 def actor_problems(cfg: DictConfig) -> list[str]:
-    """Problems with ``reset.actor.*``, the reset actor's head and the terms added to its loss."""
+    """Problems with ``reset.actor.*`` and ``forward.actor.*``: each actor's head and the terms added to its loss."""
     problems = []
-    head = setting(cfg, "reset.actor.head")
-    if head not in ACTOR_HEADS:
-        problems.append(f"reset.actor.head must be one of {', '.join(ACTOR_HEADS)}, got {head!r}")
-    for key in ("reset.actor.preact_penalty", "reset.actor.action_l2"):
-        value = setting(cfg, key)
-        if isinstance(value, bool) or not isinstance(value, (int, float)) or value < 0:
-            problems.append(f"{key} must be a number >= 0, got {value!r}")
-    entropy = setting(cfg, "reset.actor.entropy")
-    if entropy != "auto" and (isinstance(entropy, bool) or not isinstance(entropy, (int, float)) or entropy <= 0):
-        problems.append(f"reset.actor.entropy must be a number > 0 or auto, got {entropy!r}")
-    if head in ACTOR_HEADS and ACTOR_HEADS[head].stochastic and setting(cfg, "update_order") != "release":
-        problems.append(f"reset.actor.head={head} needs update_order=release (its actor step samples actions; "
-                        "the classifiers' labels take its deterministic action)")
+    for agent in ("forward", "reset"):
+        head = setting(cfg, f"{agent}.actor.head")
+        if head not in ACTOR_HEADS:
+            problems.append(f"{agent}.actor.head must be one of {', '.join(ACTOR_HEADS)}, got {head!r}")
+        for key in (f"{agent}.actor.preact_penalty", f"{agent}.actor.action_l2"):
+            value = setting(cfg, key)
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or value < 0:
+                problems.append(f"{key} must be a number >= 0, got {value!r}")
+        entropy = setting(cfg, f"{agent}.actor.entropy")
+        if entropy != "auto" and (isinstance(entropy, bool) or not isinstance(entropy, (int, float)) or entropy <= 0):
+            problems.append(f"{agent}.actor.entropy must be a number > 0 or auto, got {entropy!r}")
+        if head in ACTOR_HEADS and ACTOR_HEADS[head].stochastic and setting(cfg, "update_order") != "release":
+            uses = "the classifiers' labels" if agent == "reset" else "the critic's TD targets"
+            problems.append(f"{agent}.actor.head={head} needs update_order=release (its actor step samples actions; "
+                            f"{uses} take its deterministic action)")
     return problems
 
 

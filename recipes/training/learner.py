@@ -26,7 +26,7 @@ def make_collector(spec: RunSpec, env, forward: Agent, reset: Agent) -> DualColl
     cfg = spec.cfg
     collector = DualCollector(
         env,
-        with_exploration(forward.actor, env.action_spec, spec),
+        with_exploration(forward.actor, env.action_spec, spec, forward.head),
         with_exploration(reset.actor, env.action_spec, spec, reset.head),
         max_forward_steps=spec.forward_horizon,   # H_f
         max_reset_steps=spec.reset_horizon,       # H_r

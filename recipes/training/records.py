@@ -21,10 +21,9 @@ from tqdm import tqdm
 
 from torchrl_reset_recipes.training.buffers import fallback_count, restore_fallback_count
 from torchrl_reset_recipes.training.run_spec import RunSpec
-from torchrl_reset_recipes.training.agents import reset_head
+from torchrl_reset_recipes.training.agents import forward_head, reset_head
 from torchrl_reset_recipes.training.learner import LEARNER_FIELDS, learner_fields
 from torchrl_reset_recipes.training.diagnostics import DIAGNOSTIC_FIELDS, RESET_FIELDS, ResetDistances, TriggerScores, probe_classifier
-from torchrl_reset.actor_heads import TanhHead
 from torchrl_reset_recipes.training.run_folder import CsvTable, code_version, processor_name, reset_outcomes_by_quarter
 from torchrl_reset_recipes.training.task_envs import realtime_env, safety_counters
 
@@ -88,7 +87,7 @@ class RunRecord:
         self.history = {"eval_returns": [], "last_losses": {}, "elapsed": 0.0}
         self.curriculum_index = int(cfg.task.curriculum.index)
         self.heat_up = int(cfg.heat_up)
-        self.heads = {"forward": TanhHead(), "reset": reset_head(spec)}  # each measures its saturation
+        self.heads = {"forward": forward_head(spec), "reset": reset_head(spec)}  # each measures its saturation
         self.window = Saturation.empty()  # this log window's counts, per phase
         self.last_window = {}  # the last log row's saturation entries
 
