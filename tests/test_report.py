@@ -549,3 +549,16 @@ def test_the_diagnostics_figure_plots_each_runs_saturation_when_logged(tmp_path)
     assert list(lines["seed 0: reset"].get_ydata()) == [25.0, 50.0]  # in percent
     assert list(lines["seed 0: forward"].get_ydata()) == [0.0, 10.0]
     figures.plt.close(fig)
+
+
+def test_the_wilson_interval_by_hand():
+    """Worked from the formula: none of n gives [0, z^2 / (n + z^2)]; all of n the mirror image; half of 100 at
+    z = 1.96: centre 0.5, half-width 1.96 * sqrt(0.25 / 100 + 1.96^2 / 40000) / (1 + 1.96^2 / 100)."""
+    from torchrl_reset_recipes.analysis.runs import wilson_interval
+
+    z2 = 1.96 ** 2
+    assert wilson_interval(0, 24) == pytest.approx((0.0, z2 / (24 + z2)))  # 0.138: peg removal's 0 of 24
+    assert wilson_interval(24, 24) == pytest.approx((24 / (24 + z2), 1.0))
+    half = 1.96 * math.sqrt(0.25 / 100 + z2 / 40000) / (1 + z2 / 100)
+    assert wilson_interval(50, 100) == pytest.approx((0.5 - half, 0.5 + half))
+    assert all(math.isnan(v) for v in wilson_interval(0, 0))

@@ -164,6 +164,16 @@ def bootstrap_interval(values, confidence: float = 0.95) -> tuple[float, float, 
     low, high = result.confidence_interval
     return mean, float(low), float(high)
 
+
+def wilson_interval(successes: int, n: int, z: float = 1.96) -> tuple[float, float]:
+    """The Wilson score interval of a success share ``successes / n`` (95% at z = 1.96); NaN for ``n = 0``.
+    Unlike the normal approximation it stays inside [0, 1] and is not empty at 0 or n successes."""
+    if n == 0:
+        return math.nan, math.nan
+    p = successes / n
+    centre, half = p + z * z / (2 * n), z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n))
+    return (centre - half) / (1 + z * z / n), (centre + half) / (1 + z * z / n)
+
 def _flatten(node, prefix: str = "") -> dict:
     """A config as ``{"algo.initial_logit_bias": -4, ...}`` (lists as tuples), without ``NOT_A_SETTING``."""
     out = {}

@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import argparse
 import csv
-import math
 import statistics
 from pathlib import Path
 
@@ -27,19 +26,12 @@ from tensordict import TensorDict
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from torchrl_reset_envs import PegInsertionEnv
+from torchrl_reset_recipes.analysis.runs import wilson_interval
 from torchrl_reset_recipes.analysis.saved_runs import load_agents
 from torchrl_reset_recipes.training.agents import with_exploration
 from torchrl_reset_recipes.training.task_envs import make_task_env
 
 TABLE_TOP = -0.4
-
-
-def wilson(successes: int, n: int, z: float = 1.96) -> tuple[float, float]:
-    if n == 0:
-        return math.nan, math.nan
-    p = successes / n
-    centre, half = p + z * z / (2 * n), z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n))
-    return (centre - half) / (1 + z * z / n), (centre + half) / (1 + z * z / n)
 
 
 def trigger_states(run_dir: Path, low: int, high: int) -> list[np.ndarray]:
@@ -108,7 +100,7 @@ def main() -> None:
     for name, act in actors.items():
         runs = [episode(env, s, act, spec.reset_horizon, int(spec.cfg.reset.min_steps)) for s in states]
         wins = sum(r["success"] for r in runs)
-        lo, hi = wilson(wins, len(runs))
+        lo, hi = wilson_interval(wins, len(runs))
         med = {k: statistics.median(r[k] for r in runs) for k in ("d_start", "d_min", "d_end")}
         print(f"{name} | {len(runs)} | {wins} | {wins / len(runs):.2f} [{lo:.2f}, {hi:.2f}] | "
               f"{med['d_start']:.3f} / {med['d_min']:.3f} / {med['d_end']:.3f} | "

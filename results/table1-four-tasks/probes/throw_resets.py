@@ -12,13 +12,13 @@ greedy): the reset episodes, their success share with a 95% Wilson interval, and
 from __future__ import annotations
 
 import argparse
-import math
 from collections import Counter
 
 import torch
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from torchrl_reset import DualCollector
+from torchrl_reset_recipes.analysis.runs import wilson_interval
 from torchrl_reset_recipes.analysis.saved_runs import load_agents
 from torchrl_reset_recipes.training.agents import with_exploration
 from torchrl_reset_recipes.training.learner import event_keys, restart_option
@@ -30,14 +30,6 @@ def greedy(actor):
         with set_exploration_type(ExplorationType.DETERMINISTIC):
             return actor(td)
     return act
-
-
-def wilson(successes: int, n: int, z: float = 1.96) -> tuple[float, float]:
-    if n == 0:
-        return math.nan, math.nan
-    p = successes / n
-    centre, half = p + z * z / (2 * n), z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n))
-    return (centre - half) / (1 + z * z / n), (centre + half) / (1 + z * z / n)
 
 
 def run(saved, *, noisy_forward: bool, sampled_reset: bool, steps: int, seed: int) -> dict:
@@ -56,7 +48,7 @@ def run(saved, *, noisy_forward: bool, sampled_reset: bool, steps: int, seed: in
     forward_ends = Counter(e["outcome"] for e in events if e["phase"] == "forward")
     forward_lengths = [e["steps"] for e in events if e["phase"] == "forward"]
     c = collector.counters
-    low, high = wilson(c["successful_resets"], c["reset_episodes"])
+    low, high = wilson_interval(c["successful_resets"], c["reset_episodes"])
     collector.shutdown()
     return {"reset_episodes": c["reset_episodes"], "successful": c["successful_resets"],
             "share": c["successful_resets"] / max(c["reset_episodes"], 1), "interval": (low, high),
