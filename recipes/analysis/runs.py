@@ -174,6 +174,7 @@ def wilson_interval(successes: int, n: int, z: float = 1.96) -> tuple[float, flo
     centre, half = p + z * z / (2 * n), z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n))
     return (centre - half) / (1 + z * z / n), (centre + half) / (1 + z * z / n)
 
+
 def _flatten(node, prefix: str = "") -> dict:
     """A config as ``{"algo.initial_logit_bias": -4, ...}`` (lists as tuples), without ``NOT_A_SETTING``."""
     out = {}

@@ -34,7 +34,7 @@ from torchrl_reset_recipes import TRAIN_SCRIPT
 from torchrl_reset_recipes.analysis.runs import bootstrap_interval
 
 __all__ = ["seed_list", "named_folders", "seed_runs", "grid_command", "read_seed", "read_configuration",
-           "bootstrap_interval", "screening_table", "screening_figure", "HOLDS_AT", "main"]
+           "bootstrap_interval", "interval_text", "screening_table", "screening_figure", "HOLDS_AT", "main"]
 
 #: a seed holds when at least this share of its last quarter's reset episodes got back to the start
 HOLDS_AT = 0.5
@@ -139,7 +139,9 @@ def _value(value: float, kind: str) -> str:
     return f"{100 * value:.0f}%" if kind == "share" else (f"{value:.0f}" if kind == "count" else f"{value:.2f}")
 
 
-def _interval(values, kind: str) -> str:
+def interval_text(values, kind: str) -> str:
+    """The mean of ``values`` with its bootstrap 95% interval, as the table writes it (``kind``: count, share or
+    number); the mean alone below three values, ``n/a`` with none."""
     mean, low, high = bootstrap_interval(values)
     if math.isnan(mean):
         return "n/a"
@@ -158,7 +160,7 @@ def screening_table(configurations: dict[str, list[dict]]) -> str:
     lines = ["| configuration | seeds | seeds that hold | " + " | ".join(heads) + " |",
              "|---|---|---|" + "---|" * len(heads)]
     for name, rows in configurations.items():
-        cells = [_interval([_number(r[key]) for r in rows], kind) for key, _, kind in COLUMNS]
+        cells = [interval_text([_number(r[key]) for r in rows], kind) for key, _, kind in COLUMNS]
         seeds = ",".join(str(r["seed"]) for r in rows)
         lines.append(f"| {name} | {len(rows)} ({seeds}) | {sum(map(holds, rows))} of {len(rows)} | "
                      + " | ".join(cells) + " |")

@@ -20,7 +20,7 @@ from torchrl_reset.stochastic_actor import EntropyDDPGLoss
 
 from torchrl_reset_recipes.training.run_spec import RunSpec
 
-__all__ = ["speed_components", "make_actor", "reset_head", "forward_head", "with_exploration", "exploration_settings", "make_adam", "Agent", "make_forward_agent", "make_reset_agent", "make_trigger", "reset_tau"]
+__all__ = ["speed_components", "make_actor", "reset_head", "forward_head", "with_exploration", "exploration_settings", "make_adam", "with_temperature", "Agent", "make_forward_agent", "make_reset_agent", "make_trigger", "reset_tau"]
 
 
 def speed_components(spec: RunSpec) -> accel.Components:
@@ -118,9 +118,7 @@ def make_forward_agent(spec: RunSpec, obs_dim: int, action_spec) -> Agent:
     loss.make_value_estimator(gamma=cfg.gamma)
     groups = [{"params": list(loss.actor_network_params.values(True, True)), "lr": cfg.forward.actor_lr},
               {"params": list(loss.value_network_params.values(True, True)), "lr": cfg.forward.critic_lr}]
-    if getattr(loss, "temperature", None) is not None and loss.temperature.learned:  # at the critic's rate
-        groups.append({"params": [loss.temperature.log_alpha], "lr": cfg.forward.critic_lr})
-    optimizer = make_adam(spec, groups)
+    optimizer = make_adam(spec, with_temperature(groups, loss, cfg.forward.critic_lr))
     targets = parts.soft_update(loss, tau=cfg.tau)  # building it copies the networks into their targets
     if spec["target_init"] == "release":  # the target actor starts as a network of its own; the target critic as a copy
         draw_target(loss.target_actor_network_params, make_actor(obs_dim, action_spec, cfg.hidden_sizes, parts, head))
@@ -134,15 +132,22 @@ def make_reset_agent(spec: RunSpec, obs_dim: int, action_spec) -> Agent:
     act_dim, head = action_spec.shape[-1], reset_head(spec)
     actor = make_actor(obs_dim, action_spec, cfg.hidden_sizes, parts, head)
     model, loss, groups = kind.build(spec, actor, obs_dim, act_dim, parts, head)
-    if loss.temperature is not None and loss.temperature.learned:  # steps with the actor, at the classifiers' rate
-        groups = [*groups, {"params": [loss.temperature.log_alpha], "lr": cfg.reset.critic_lr}]
-    optimizer = make_adam(spec, groups)
+    optimizer = make_adam(spec, with_temperature(groups, loss, cfg.reset.critic_lr))
     targets = parts.soft_update(loss, tau=reset_tau(spec))  # building it copies the networks into their targets
     # the targets that start as draws of their own (target_init: release for ours; algo.target_draws for LNT)
     for network, name in kind.fresh_targets(spec, loss, obs_dim, act_dim, parts,
                                             lambda: make_actor(obs_dim, action_spec, cfg.hidden_sizes, parts, head)):
         draw_target(getattr(loss, name), network)
     return Agent(actor, loss, optimizer, targets, model, kind.critic_loss, head)
+
+
+def with_temperature(groups: list[dict], loss, lr: float) -> list[dict]:
+    """``groups`` plus, where ``loss`` learns its actor's temperature (a tanh-Gaussian head with ``entropy: auto``),
+    a group for it at ``lr`` (the critic's rate: it steps with the actor)."""
+    temperature = getattr(loss, "temperature", None)  # torchrl's DDPGLoss has none
+    if temperature is None or not temperature.learned:
+        return groups
+    return [*groups, {"params": [temperature.log_alpha], "lr": lr}]
 
 
 def draw_target(target, fresh: nn.Module) -> None:

@@ -4,8 +4,8 @@
 
 Per task: each seed of ours passes when its last quarter's reset success is at least 80% and its manual resets
 are at most half the episodic agent's; the task **works** when seeds 0, 1 and 2 of ours all pass, and does not
-once one fails (with fewer in and none failed: not decided). Then ours' mean manual resets against LNT's over the seeds both have,
-each with its bootstrap 95% interval (screen.py's: BCa, 10,000 resamples; none below three seeds), and which
+once one fails (with fewer in and none failed: not decided). Then ours' mean manual resets against LNT's over the
+seeds both have, each with its bootstrap 95% interval (screen.py's: BCa, 10,000 resamples; none below three seeds), and which
 order holds. The forward actor's saturation in the last quarter is shown beside each seed of ours.
 """
 from __future__ import annotations
@@ -14,7 +14,7 @@ import argparse
 import math
 from pathlib import Path
 
-from torchrl_reset_recipes.analysis.screen import bootstrap_interval, read_configuration
+from torchrl_reset_recipes.analysis.screen import interval_text, read_configuration
 
 TASKS = ["ball_in_cup_catch", "ball_in_cup_throw", "peg_insertion_remove", "cliff_walker"]
 SEEDS = (0, 1, 2)
@@ -24,13 +24,6 @@ SUCCESS_AT = 0.80
 def passes(row: dict) -> bool:
     return (not math.isnan(row["success_last"]) and row["success_last"] >= SUCCESS_AT
             and row["manual_resets"] <= row["episodic_resets"] / 2)
-
-
-def _mean(values: list[float]) -> str:
-    mean, low, high = bootstrap_interval(values)
-    if math.isnan(mean):
-        return "n/a"
-    return f"{mean:.0f}" if math.isnan(low) else f"{mean:.0f} [{low:.0f}, {high:.0f}]"
 
 
 def task_verdict(folder: Path, task: str) -> list[str]:
@@ -53,7 +46,8 @@ def task_verdict(folder: Path, task: str) -> list[str]:
         a = [float(ours[s]["manual_resets"]) for s in both]
         b = [float(lnt[s]["manual_resets"]) for s in both]
         order = "ours below LNT" if sum(a) < sum(b) else "LNT at or below ours"
-        lines.append(f"- manual resets on seeds {','.join(map(str, both))}: ours {_mean(a)}, LNT {_mean(b)}: {order}")
+        lines.append(f"- manual resets on seeds {','.join(map(str, both))}: ours {interval_text(a, 'count')}, "
+                     f"LNT {interval_text(b, 'count')}: {order}")
     else:
         lines.append("- ours against LNT: no seed has both yet")
     return lines + [""]
