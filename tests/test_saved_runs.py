@@ -13,12 +13,13 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
+import torch
 
 ROOT = Path(__file__).resolve().parents[1]
 
 from torchrl_reset_recipes import train
 from torchrl_reset_recipes.training.hydra_config import compose
-from torchrl_reset_recipes.analysis.saved_runs import latest_checkpoint, load_replay, run_config, run_table
+from torchrl_reset_recipes.analysis.saved_runs import latest_checkpoint, load_examples, load_replay, run_config, run_table
 
 #: a few hundred steps of small networks, both agents updating (heat-up 40), checkpoints and kept states at
 #: 100 and 200 steps; one thread: on a busy machine the runs take a few seconds each
@@ -115,6 +116,31 @@ def test_load_replay_reads_a_checkpoints_replay_buffers(runs, tmp_path):
     for read in (latest_checkpoint, load_replay):
         with pytest.raises(FileNotFoundError, match="holds no complete checkpoint"):
             read(tmp_path)
+
+
+def test_load_examples_reads_one_example_per_forward_episode_begun(runs):
+    """Algorithm 1 adds the state at the start of every forward episode to S*: at each checkpoint the example
+    buffer holds as many states as the run had begun forward episodes (progress.csv's count at that step)."""
+    progress = {int(row["frames"]): row for row in run_table(runs.cliff, "progress.csv")}
+    for step, checkpoint in ((STEPS, None), (100, "checkpoints/step_0000000100")):
+        examples = load_examples(runs.cliff, checkpoint=checkpoint)
+        assert len(examples) == int(progress[step]["forward_episodes"]) > 0
+        assert examples.states()["observation"].shape[-1] == 18  # cliff-cheetah's observation
+    with pytest.raises(FileNotFoundError, match="a kept state holds the agents alone"):
+        load_examples(runs.cliff, checkpoint="checkpoints/kept/step_0000000100")
+
+
+def test_guidance_groups_every_reset_replay_row_and_reads_only_ours(runs):
+    from torchrl_reset_recipes.analysis.guidance import guidance
+
+    text = guidance(runs.cliff, bins=4)
+    table = [line for line in text.splitlines() if line.startswith("| ") and not line.startswith("| distance")]
+    replay_rows = len(load_replay(runs.cliff, "reset"))
+    assert table[0].startswith(f"| the examples ({len(torch.unique(load_examples(runs.cliff).states()['observation'], dim=0))} distinct)")
+    assert len(table) == 5 and sum(int(line.split("|")[2]) for line in table[1:]) == replay_rows
+    assert "Spearman rank correlation" in text
+    with pytest.raises(SystemExit, match="this reads ours' classifiers"):
+        guidance(runs.peg)
 
 
 def test_the_scoring_helpers_read_logged_states_act_greedily_and_score_as_ours_trigger():

@@ -16,7 +16,7 @@ from omegaconf import DictConfig, OmegaConf
 from torchrl.data import ReplayBuffer
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
-from torchrl_reset import success_probability
+from torchrl_reset import InitialStateBuffer, success_probability
 from torchrl_reset_recipes.training.updates import update
 from torchrl_reset_recipes.training.agents import Agent, make_forward_agent, make_reset_agent
 from torchrl_reset_recipes.training.buffers import make_buffers
@@ -24,7 +24,7 @@ from torchrl_reset_recipes.training.run_spec import RunSpec, run_spec
 from torchrl_reset_recipes.training.checkpoints import MANIFEST, CheckpointDamaged, Checkpoints, checkpoint_problems, checkpoint_step, identity_differences
 from torchrl_reset_recipes.training.task_envs import task_dimensions
 
-__all__ = ["SavedRun", "load_agents", "load_replay", "latest_checkpoint", "run_config", "run_table", "logged_observations",
+__all__ = ["SavedRun", "load_agents", "load_replay", "load_examples", "latest_checkpoint", "run_config", "run_table", "logged_observations",
            "greedy_actions", "model_values", "trigger_probability", "ensemble_scores", "ensemble_minimum", "new_reset_agent",
            "offline_updates", "CarriedNoise"]
 
@@ -100,6 +100,21 @@ def load_replay(run_dir: Path | str, agent: str = "reset", *, checkpoint: Path |
     rb = forward_rb if agent == "forward" else reset_rb
     rb.loads(folder)
     return rb
+
+
+def load_examples(run_dir: Path | str, *, checkpoint: Path | str | None = None) -> InitialStateBuffer:
+    """The example buffer (``S*``) of ``run_dir`` as ``checkpoint`` holds it (named and checked as for
+    :func:`load_agents`; default: the latest complete one): the state at the start of every forward episode up
+    to that step, oldest first (``states()``). A kept state (``checkpoints/kept/``) holds the agents alone:
+    FileNotFoundError."""
+    run_dir = Path(run_dir)
+    checkpoint = _checkpoint(run_dir, checkpoint, run_config(run_dir))
+    if checkpoint.parent.name == "kept":
+        raise FileNotFoundError(f"{checkpoint} holds no example buffer: a kept state holds the agents alone")
+    saved = torch.load(checkpoint / "state.pt", weights_only=False, map_location="cpu")["collector"]["example_buffer"]
+    examples = InitialStateBuffer(max_size=saved["max_size"], state_keys=saved["state_keys"])
+    examples.load_state_dict(saved)
+    return examples
 
 
 def latest_checkpoint(run_dir: Path | str) -> Path:
