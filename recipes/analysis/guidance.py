@@ -109,8 +109,9 @@ def guidance(run: Path, checkpoint: str | None = None, bins: int = 6, taken: boo
     p_examples = trigger_probability(model, distinct, greedy_actions(actor, distinct))
     at_examples = {"distinct": len(distinct), "rows": len(examples), "median_p": _median(p_examples),
                    "at_or_above": float((p_examples >= threshold).double().mean())}
+    chosen = "action taken" if taken else "reset actor's greedy action"
     head = (f"{run} at {saved.checkpoint.name}: {len(observation)} reset replay rows, p with the "
-            f"{'action taken' if taken else 'reset actor greedy'}; distances in the observation, each entry "
+            f"{chosen}; distances in the observation, each entry "
             f"divided by its spread over these rows")
     rho = spearman(distance, p.double())
     return "\n".join([head, "", markdown(at_examples, guidance_rows(distance, p.double(), bins, threshold), threshold), "",
