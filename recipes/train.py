@@ -34,7 +34,7 @@ from torchrl_reset import DualCollector
 from torchrl_reset_envs.ur3_backends import RobotFault
 from torchrl_reset_recipes.training.async_learner import AsyncLearner, LearnerFailed
 from torchrl_reset_recipes.training.checkpoints import CheckpointDamaged, Checkpoints
-from torchrl_reset_recipes.training.config_checks import RETIRED_KEYS, ConfigError, retired_key_problem, validate
+from torchrl_reset_recipes.training.config_checks import ConfigError, command_line_problems, validate
 from torchrl_reset_recipes.training.learner import NonFiniteLoss
 from torchrl_reset_recipes.training.run_folder import RunFolderBusy, RunInterrupted, run_folder_lock, stop_on_signals
 from torchrl_reset_recipes.training.hydra_config import register_task_configs
@@ -168,13 +168,14 @@ LOG_FORMAT = "[%(asctime)s][%(name)s][%(levelname)s] - %(message)s"  # Hydra's
 
 
 def main() -> None:
-    """The command line: ``python recipes/train.py [overrides]`` (see the module's docstring). A key of run
-    batching (``seeds=3``, ``arms=2``: retired) stops it before Hydra, with what runs seeds instead (exit 2)."""
+    """The command line: ``python recipes/train.py [overrides]`` (see the module's docstring). An override no
+    configuration could take stops it before Hydra (exit 2, :func:`command_line_problems`): a key of run batching
+    (``seeds=3``, ``arms=2``: retired), with what runs seeds instead, or a misspelled key (``total_step=1000``),
+    with the closest known key."""
     args = sys.argv[1:]
-    retired = [key for key in dict.fromkeys(a.lstrip("+~").split("=")[0].replace("/", ".") for a in args if "=" in a)
-               if key in RETIRED_KEYS]
-    if retired:
-        print("error: invalid configuration:\n  - " + "\n  - ".join(map(retired_key_problem, retired)), file=sys.stderr)
+    problems = command_line_problems(args)
+    if problems:
+        print("error: invalid configuration:\n  - " + "\n  - ".join(problems), file=sys.stderr)
         sys.exit(2)
     if not any(a in ("-m", "--multirun") or a.startswith("hydra.mode=") for a in args):
         given = {a.lstrip("+~").split("=")[0].replace("/", ".") for a in args}

@@ -737,6 +737,26 @@ def test_keys_the_recipe_does_not_define_are_refused_and_those_its_groups_add_ar
     validate(config(tmp_path, "preset=quick", "algo=lnt", "algo.reward_bounds=[0,1]"))
 
 
+def test_a_plain_override_of_a_key_defined_nowhere_is_refused_before_hydra_with_the_closest_key():
+    """What main() refuses before Hydra composes anything (exit 2): a plain override of a key that no file and no
+    task defines, with the closest known key, and the keys of run batching, retired, with or without +."""
+    from torchrl_reset_recipes.training.config_checks import command_line_problems
+
+    (line,) = command_line_problems(["task=cliff_cheetah", "total_step=1000"])
+    assert re.fullmatch(r"unknown key total_step: .* does not define it, so nothing would read it; "
+                        r"the closest known key is total_steps", line)
+    (line,) = command_line_problems(["qqqqqq.zzzz=1"])  # nothing close: no suggestion
+    assert line.startswith("unknown key qqqqqq.zzzz:") and "closest" not in line
+    retired = command_line_problems(["seeds=3", "+seeds=4", "arms=2"])  # each key once
+    assert len(retired) == 2 and all(re.match(r"unknown key (seeds|arms): run batching .* was retired", p) for p in retired)
+    # left to Hydra and to the check after composition: group choices, a -m grid's values, keys of every file and
+    # of one task only (cliff-walker's noise), a key under an open mapping, Hydra's own, added and deleted keys
+    assert command_line_problems([
+        "-m", "task=cliff_walker", "algo=ours,lnt", "preset=quick", "reset_actor=release", "seed=0,1,2",
+        "task.exploration.sigma=0.1", "forward.actor.head=tanh_normal", "env.acceleration=1.0",
+        "hydra/launcher=joblib", "hydra.run.dir=.", "+zzz=1", "~eval_every", "run_dir=a=b"]) == []
+
+
 @pytest.mark.parametrize("written_before", [False, True], ids=["today", "before-the-release-keys"])
 def test_a_config_without_the_release_keys_runs_as_the_recipe_ran_before_them(tmp_path, written_before):
     """The six keys that made the recipe follow the authors' release (docs/release-audit.md) arrived with the

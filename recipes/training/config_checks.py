@@ -247,6 +247,38 @@ def retired_key_problem(key: str) -> str:
             "(python recipes/train.py -m seed=0,1,2; docs/many-runs.md)")
 
 
+def command_line_problems(args, conf: Path = CONF) -> list[str]:
+    """The lines for the overrides of a command line (``sys.argv[1:]``) that no configuration could take, found
+    before Hydra composes one: a key of run batching (retired, with or without ``+``: what runs seeds instead),
+    and a plain override (``key=value``, no leading ``+`` or ``~``) of a key that the recipe defines nowhere
+    (:func:`recipe_settings`), with the closest known key. Hydra would refuse the latter as well, but says only
+    that the key is not in its struct and suggests appending it with ``+``. A group's choice (``task=...``), a
+    key under an open mapping (``env.acceleration=...``) and Hydra's own (``hydra.*``, ``hydra/launcher=...``)
+    are left to Hydra; an added key (``+key=...``) is checked once composed (:func:`unknown_settings`)."""
+    keys, open_mappings = recipe_settings(conf)
+    groups = {p.name for p in conf.iterdir() if p.is_dir()} | {"task"}
+    lines, seen = [], set()
+    for arg in args:
+        if "=" not in arg or arg.startswith("-"):
+            continue
+        raw = arg.split("=", 1)[0]
+        key = raw.lstrip("+~").replace("/", ".")
+        if key in seen:
+            continue
+        seen.add(key)
+        if key in RETIRED_KEYS:
+            lines.append(retired_key_problem(key))
+            continue
+        if (raw[:1] in "+~" or "@" in key or key.split(".")[0] == "hydra" or key in keys or key in groups
+                or any(key.startswith(f"{m}.") for m in open_mappings)):
+            continue
+        close = difflib.get_close_matches(key, sorted(keys), n=1, cutoff=0.6)
+        hint = f"; the closest known key is {close[0]}" if close else ""
+        lines.append(f"unknown key {key}: the recipe's configuration (recipes/conf and the task registry) does not define "
+                     f"it, so nothing would read it{hint}")
+    return lines
+
+
 def unknown_settings(cfg: DictConfig, conf: Path = CONF) -> list[str]:
     """A line for each key of ``cfg`` that the recipe does not define (:func:`recipe_settings`), such as the
     misspelled ``+total_step=1000``: the recipe would never read it (a key of run batching, retired, says so
