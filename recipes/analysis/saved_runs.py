@@ -105,7 +105,7 @@ def load_replay(run_dir: Path | str, agent: str = "reset", *, checkpoint: Path |
 def load_examples(run_dir: Path | str, *, checkpoint: Path | str | None = None) -> InitialStateBuffer:
     """The example buffer (``S*``) of ``run_dir`` as ``checkpoint`` holds it (named and checked as for
     :func:`load_agents`; default: the latest complete one): the state at the start of every forward episode up
-    to that step, oldest first (``states()``). A kept state (``checkpoints/kept/``) holds the agents alone:
+    to that step (``states()``, in slot order: oldest first until the buffer is full). A kept state (``checkpoints/kept/``) holds the agents alone:
     FileNotFoundError."""
     run_dir = Path(run_dir)
     checkpoint = _checkpoint(run_dir, checkpoint, run_config(run_dir))
