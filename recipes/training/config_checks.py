@@ -266,16 +266,9 @@ def command_line_problems(args, conf: Path = CONF) -> list[str]:
         if key in seen:
             continue
         seen.add(key)
-        if key in RETIRED_KEYS:
-            lines.append(retired_key_problem(key))
-            continue
-        if (raw[:1] in "+~" or "@" in key or key.split(".")[0] == "hydra" or key in keys or key in groups
-                or any(key.startswith(f"{m}.") for m in open_mappings)):
-            continue
-        close = difflib.get_close_matches(key, sorted(keys), n=1, cutoff=0.6)
-        hint = f"; the closest known key is {close[0]}" if close else ""
-        lines.append(f"unknown key {key}: the recipe's configuration (recipes/conf and the task registry) does not define "
-                     f"it, so nothing would read it{hint}")
+        if key in RETIRED_KEYS or not (raw[:1] in "+~" or "@" in key or key.split(".")[0] == "hydra" or key in keys
+                                       or key in groups or any(key.startswith(f"{m}.") for m in open_mappings)):
+            lines.append(_unknown_key_problem(key, keys, added=False))
     return lines
 
 
@@ -297,13 +290,17 @@ def unknown_settings(cfg: DictConfig, conf: Path = CONF) -> list[str]:
                 walk(value, f"{path}.")
 
     walk(OmegaConf.to_container(cfg, resolve=False), "")
-    lines = []
-    for path in unknown:
-        if path in RETIRED_KEYS:
-            lines.append(retired_key_problem(path))
-            continue
-        close = difflib.get_close_matches(path, sorted(keys), n=1, cutoff=0.6)
-        hint = f"; the closest known key is {close[0]} (set it without a leading +: {close[0]}=...)" if close else ""
-        lines.append(f"unknown key {path}: the recipe's configuration (recipes/conf and the task registry) does not define it, so "
-                     f"nothing would read it{hint}")
-    return lines
+    return [_unknown_key_problem(path, keys, added=True) for path in unknown]
+
+
+def _unknown_key_problem(key: str, keys, *, added: bool) -> str:
+    """The line for a key the recipe does not define: a key of run batching says it was retired; another names the
+    closest known key, if one is close (``added``: the key came with a leading +, which the fix drops)."""
+    if key in RETIRED_KEYS:
+        return retired_key_problem(key)
+    close = difflib.get_close_matches(key, sorted(keys), n=1, cutoff=0.6)
+    hint = ""
+    if close:
+        hint = f"; the closest known key is {close[0]}" + (f" (set it without a leading +: {close[0]}=...)" if added else "")
+    return (f"unknown key {key}: the recipe's configuration (recipes/conf and the task registry) does not define it, so "
+            f"nothing would read it{hint}")
