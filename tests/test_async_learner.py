@@ -70,12 +70,22 @@ def test_a_crashed_or_hung_learner_stops_the_run_with_a_clear_error_and_the_last
         if self.sent == 120:  # after the checkpoint at 100
             self.inbox.put(fault)
 
+    waits = []  # what the actor waited for, each time it waited for a message
+    next_message = AsyncLearner._next_message
+
+    def recorded_next_message(self, timeout, *, waiting_for):
+        waits.append(waiting_for)
+        return next_message(self, timeout, waiting_for=waiting_for)
+
     monkeypatch.setattr(AsyncLearner, "send", send)
+    monkeypatch.setattr(AsyncLearner, "_next_message", recorded_next_message)
     cfg = quick_config(tmp_path, *SEPARATE, "learner.mode=async", "learner.max_lag=0", "learner.timeout=3")
     with pytest.raises(train.LearnerStopped, match=message):
         train.train(cfg)
     assert (tmp_path / "checkpoints" / "step_0000000100" / "learner.pt").exists()
+    assert "the learner's checkpoint" in waits
     if fault[0] == "hang":
+        assert "the learner to stop" not in waits  # a hung learner is ended at once, not asked and waited for again
         return  # resuming after either is the same (a lockstep run resumed exactly: test_recipes' Ctrl-C test)
     monkeypatch.setattr(AsyncLearner, "send", original)
     resumed = train.train(quick_config(tmp_path, *SEPARATE, "learner.mode=async", "learner.max_lag=0",

@@ -273,6 +273,7 @@ class AsyncLearner:
                                          resume_from, list(collector.example_buffer.state_keys),
                                          int(collector.example_buffer.max_size)))
         self.sent = 0
+        self.unresponsive = False  # the learner let a wait for it time out: close() ends it without asking
         self.processed = 0  # the steps the learner reported processed (its progress messages)
         self.loaded = -1
         self.updates, self.last_losses = updates, last_losses  # the run's history's: kept across a resume
@@ -352,8 +353,9 @@ class AsyncLearner:
             raise LearnerFailed(f"the learner answered {kind!r} to a checkpoint")
 
     def close(self) -> None:
-        """Stops the learner (after its last message) and waits for the process to end."""
-        if self.process.is_alive():
+        """Stops the learner (after its last message) and waits for the process to end; a learner that already let a
+        wait time out (hung) is ended at once, not asked and waited for again."""
+        if self.process.is_alive() and not self.unresponsive:
             self.inbox.put(("stop",))
             try:
                 self._next_message(self.timeout, waiting_for="the learner to stop")
@@ -421,6 +423,7 @@ class AsyncLearner:
                 self._check_alive()
                 self._idle()
                 if time.monotonic() > deadline:
+                    self.unresponsive = True
                     raise LearnerFailed(f"no answer from the learner in {timeout:.0f} s while waiting for {waiting_for}")
                 continue
             kind, value = self._handle(message)
@@ -438,6 +441,7 @@ class AsyncLearner:
                 self._check_alive()
                 self._idle()
                 if time.monotonic() - last_change > self.timeout:
+                    self.unresponsive = True
                     raise LearnerFailed(f"the learner made no progress for {self.timeout:g} s while the actor waited "
                                         f"for {why} (processed {self.processed} of {self.sent} steps): hung")
                 continue
