@@ -22,9 +22,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from torchrl_reset import InitialStateBuffer
 from torchrl_reset_envs import PegInsertionEnv
-from torchrl_reset_recipes.analysis.saved_runs import greedy_actions, load_agents, load_replay, trigger_probability
+from torchrl_reset_recipes.analysis.saved_runs import (greedy_actions, load_agents, load_examples, load_replay,
+                                                       trigger_probability)
 
 BINS = (0.0, 0.1, 0.2, 0.3, 0.5, 0.8, float("inf"))
 
@@ -49,9 +49,7 @@ def main(argv=None) -> None:
         raise SystemExit(f"{args.run_dir} is not a run of ours on peg_insertion_remove")
     replay = load_replay(args.run_dir, "reset", checkpoint=saved.checkpoint)
     rows = replay.storage[:min(replay.write_count, replay.storage.max_size)]
-    saved_examples = torch.load(saved.checkpoint / "state.pt", weights_only=False, map_location="cpu")["collector"]["example_buffer"]
-    examples = InitialStateBuffer(max_size=saved_examples["max_size"], state_keys=saved_examples["state_keys"])
-    examples.load_state_dict(saved_examples)
+    examples = load_examples(args.run_dir, checkpoint=saved.checkpoint)
     model, actor = saved.reset.model, saved.reset.actor
     env = PegInsertionEnv("remove")
     env.reset(seed=0)
