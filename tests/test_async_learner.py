@@ -64,8 +64,10 @@ def test_a_lagging_learner_still_makes_every_update_algorithm_1_owes(tmp_path):
 def test_a_crashed_or_hung_learner_stops_the_run_with_a_clear_error_and_the_last_checkpoint(tmp_path, monkeypatch,
                                                                                           fault, message):
     original = AsyncLearner.send
+    learners = []
 
     def send(self, batch, phase):
+        learners.append(self)
         original(self, batch, phase)
         if self.sent == 120:  # after the checkpoint at 100
             self.inbox.put(fault)
@@ -84,6 +86,7 @@ def test_a_crashed_or_hung_learner_stops_the_run_with_a_clear_error_and_the_last
         train.train(cfg)
     assert (tmp_path / "checkpoints" / "step_0000000100" / "learner.pt").exists()
     assert "the learner's checkpoint" in waits
+    assert not learners[-1].process.is_alive()  # ended with the run: the hung one killed (it ignores SIGTERM)
     if fault[0] == "hang":
         assert "the learner to stop" not in waits  # a hung learner is ended at once, not asked and waited for again
         return  # resuming after either is the same (a lockstep run resumed exactly: test_recipes' Ctrl-C test)
@@ -91,6 +94,26 @@ def test_a_crashed_or_hung_learner_stops_the_run_with_a_clear_error_and_the_last
     resumed = train.train(quick_config(tmp_path, *SEPARATE, "learner.mode=async", "learner.max_lag=0",
                                        "resume=auto"))
     assert resumed["finished"] and resumed["steps"] == 200
+
+
+def test_an_idle_learner_whose_actor_has_ended_stops_waiting_and_one_whose_actor_lives_gets_its_message():
+    """A killed actor sends nothing more: the learner's wait ends (None) instead of holding the buffers forever."""
+    from torchrl_reset_recipes.training.async_learner import next_message
+
+    ctx = multiprocessing.get_context("spawn")
+    inbox = ctx.Queue()
+    gone = ctx.Process(target=int)  # a real process that has ended
+    gone.start()
+    gone.join()
+    start = time.monotonic()
+    assert next_message(inbox, gone.is_alive, wait=0.1) is None
+    assert time.monotonic() - start >= 0.1  # it waited for a message first
+    inbox.put(("stop",))
+    assert next_message(inbox, gone.is_alive, wait=5.0) == ("stop",)  # what was sent is still taken
+    import threading
+
+    threading.Timer(0.3, inbox.put, args=(("step", 1),)).start()  # a live actor, slow to send: waited for
+    assert next_message(inbox, lambda: True, wait=0.05) == ("step", 1)
 
 
 def test_weights_of_another_layout_are_refused():

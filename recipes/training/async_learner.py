@@ -49,6 +49,7 @@ log = logging.getLogger("torchrl_reset.train")
 #: the learner's part of a checkpoint (its losses, optimizers, example mirror and counts; the buffers beside it)
 LEARNER_FILE = "learner.pt"
 POLL = 0.0005  # seconds between two looks at the learner while the actor waits for it
+ACTOR_CHECK = 1.0  # seconds the idle learner waits for a message before it looks whether its actor still lives
 
 
 class LearnerFailed(RuntimeError):
@@ -172,9 +173,12 @@ def _serve(cfg: DictConfig, weights, inbox, outbox, resume_from, example_keys, e
     weights.check_priors(modules)
     weights.publish(modules, processed)
     outbox.put(("ready", processed))
+    actor = mp.parent_process()
     with streams.use("learner"):
         while True:
-            message = inbox.get()
+            message = next_message(inbox, actor.is_alive)
+            if message is None:  # the actor is gone (killed, crashed): nothing will come, nothing to save
+                return
             kind = message[0]
             if kind == "step":
                 _, batch, phase, new_examples = message
@@ -207,6 +211,17 @@ def _serve(cfg: DictConfig, weights, inbox, outbox, resume_from, example_keys, e
                 raise RuntimeError("the learner was asked to fail (a test)")
             elif kind == "hang":  # tests: a learner that stops answering
                 time.sleep(float(message[1]))
+
+
+def next_message(inbox, actor_alive, wait: float = ACTOR_CHECK):
+    """The actor's next message, or None once the actor process has ended without a word (kill -9, a crash):
+    the learner does not outlive it, holding the buffers and the shared weights' memory."""
+    while True:
+        try:
+            return inbox.get(timeout=wait)
+        except queue_module.Empty:
+            if not actor_alive():
+                return None
 
 
 # ------------------------------------------------------------------------------------------------ actor side
@@ -354,7 +369,8 @@ class AsyncLearner:
 
     def close(self) -> None:
         """Stops the learner (after its last message) and waits for the process to end; a learner that already let a
-        wait time out (hung) is ended at once, not asked and waited for again."""
+        wait time out (hung) is ended at once, not asked and waited for again. Ended means killed: the learner
+        ignores SIGTERM (the actor stops the run, checkpointing first), so ``terminate`` would not end it."""
         if self.process.is_alive() and not self.unresponsive:
             self.inbox.put(("stop",))
             try:
@@ -363,7 +379,7 @@ class AsyncLearner:
                 pass
             self.process.join(timeout=2)
         if self.process.is_alive():
-            self.process.terminate()
+            self.process.kill()
             self.process.join(timeout=5)
 
     def stats_summary(self) -> dict:
