@@ -44,10 +44,11 @@ def constant_actor(value: float, action_dim: int = 1) -> TensorDictModule:
     return TensorDictModule(ConstantActor(value, action_dim), in_keys=["observation"], out_keys=["action"])
 
 
-#: the main job's settings shrunk to a few hundred steps of tiny networks
+#: the main job's settings shrunk to a few hundred steps of tiny networks, one torch thread (the test workers'
+#: runs are held to one by conftest.py; this holds the processes they start too: learners, train.py commands)
 QUICK_TINY = ["preset=quick", "task=ball_in_cup_catch", "hidden_sizes=[16,16]", "heat_up=40", "task.forward_horizon=20",
               "reset.batch_size=16", "forward.batch_size=16", "eval_every=100", "log_every=50", "checkpoint_every=100",
-              "progress_bar=false", "total_steps=200"]
+              "progress_bar=false", "total_steps=200", "threads=1"]
 
 
 def quick_config(run_dir, *overrides):
