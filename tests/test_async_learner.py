@@ -9,6 +9,7 @@ import csv
 import gc
 import multiprocessing
 import sys
+import threading
 import time
 from types import SimpleNamespace
 
@@ -19,7 +20,7 @@ from torch import nn
 from fake_ur_rtde import PROTECTIVE_STOP, FakeURController
 from helpers import quick_config
 from torchrl_reset_recipes import train
-from torchrl_reset_recipes.training.async_learner import AsyncLearner, LearnerFailed, SharedWeights
+from torchrl_reset_recipes.training.async_learner import AsyncLearner, LearnerFailed, SharedWeights, next_message
 from torchrl_reset_recipes.training.config_checks import ConfigError, validate
 
 SEPARATE = ["learner.streams=separate", "total_steps=200"]
@@ -84,8 +85,6 @@ def test_a_crashed_or_hung_learner_stops_the_run_with_a_clear_error_and_the_last
 
 def test_an_idle_learner_whose_actor_has_ended_stops_waiting_and_one_whose_actor_lives_gets_its_message():
     """A killed actor sends nothing more: the learner's wait ends (None) instead of holding the buffers forever."""
-    from torchrl_reset_recipes.training.async_learner import next_message
-
     ctx = multiprocessing.get_context("spawn")
     inbox = ctx.Queue()
     gone = ctx.Process(target=int)  # a real process that has ended
@@ -96,8 +95,6 @@ def test_an_idle_learner_whose_actor_has_ended_stops_waiting_and_one_whose_actor
     assert time.monotonic() - start >= 0.1  # it waited for a message first
     inbox.put(("stop",))
     assert next_message(inbox, gone.is_alive, wait=5.0) == ("stop",)  # what was sent is still taken
-    import threading
-
     threading.Timer(0.3, inbox.put, args=(("step", 1),)).start()  # a live actor, slow to send: waited for
     assert next_message(inbox, lambda: True, wait=0.05) == ("step", 1)
 

@@ -42,7 +42,7 @@ from omegaconf import DictConfig, OmegaConf
 from torchrl_reset import DualCollector, InitialStateBuffer
 from torchrl_reset_recipes.training.learner import updates_achieved
 
-__all__ = ["LearnerFailed", "SharedWeights", "AsyncLearner", "learner_main", "LEARNER_FILE"]
+__all__ = ["LearnerFailed", "SharedWeights", "AsyncLearner", "learner_main", "next_message", "LEARNER_FILE"]
 
 log = logging.getLogger("torchrl_reset.train")
 
